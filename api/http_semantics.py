@@ -130,6 +130,9 @@ def sends_body(request: Request) -> bool:
     return "transfer-encoding" in request.headers or not (length.isdigit() and int(length) == 0)
 
 
+ID_SHOWN = 100  # characters of an id or name from a request's path a 404 shows (ids are 32; artifact names, 100 at most)
+
+
 def listed(names: list[str], most: int = 5, width: int = 40) -> str:
     """``names`` for a message, quoted: the first ``most``, each cut to ``width`` characters, then how many more. A
     name the client sent may be anything: a raw zip read as a form had named its whole body (a 1.9 MB message).

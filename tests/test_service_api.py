@@ -3264,3 +3264,18 @@ def test_a_file_path_holding_a_lone_surrogate_is_a_422_naming_it(client, dataset
     assert response.status_code == 422, response.text
     assert f"'file_path' holds {surrogate!r}, a lone surrogate" in response.json()["detail"]
     assert client.get("/v1/scenes").json()["total"] == 0 and staged(root) == []
+
+
+def test_a_404_shows_a_long_requested_id_cut(client):
+    """Regression: a 404 echoed the whole id of the request's path, a string of any length the client chose (an 8 kB
+    path, an 8 kB message). Ids (32 characters) are shown whole; past 100 characters, cut."""
+    job_id = _job_row()
+    long = "x" * 5000
+    shown = repr("x" * 100 + "...")
+    for path, detail in ((f"/v1/jobs/{long}", f"job {shown} not found"),
+                         (f"/v1/scenes/{long}", f"scene {shown} not found"),
+                         (f"/v1/sweeps/{long}", f"sweep {shown} not found"),
+                         (f"/v1/jobs/{job_id}/artifacts/{long}", f"job {job_id!r} has no artifact {shown}")):
+        response = client.get(path)
+        assert (response.status_code, response.json()["detail"]) == (404, detail), path
+    assert client.get(f"/v1/jobs/{'a' * 32}").json()["detail"] == f"job {'a' * 32!r} not found"

@@ -11,7 +11,7 @@ from fastapi.responses import StreamingResponse
 from sqlalchemy import select
 
 from api.deps import CurrentKey, SessionDep, StorageDep
-from api.http_semantics import StrictRoute, combined, listed, only_line
+from api.http_semantics import ID_SHOWN, StrictRoute, combined, listed, only_line
 from api.schemas import ArtifactOut
 from api.services.jobs import get_job
 from voxe_service.models import Artifact
@@ -197,7 +197,8 @@ def get_artifact(
             # Only names recorded for this job are served: no path is ever built from the request.
             artifact = session.scalars(select(Artifact).where(Artifact.job_id == job_id, Artifact.name == name)).first()
             if artifact is None:
-                raise HTTPException(status.HTTP_404_NOT_FOUND, f"job {job_id!r} has no artifact {name!r}")
+                raise HTTPException(status.HTTP_404_NOT_FOUND,
+                                    f"job {job_id!r} has no artifact {listed([name], width=ID_SHOWN)}")
             try:
                 return _answer(request.method, storage, artifact, range_, if_range, held, required)
             except ObjectNotFound:

@@ -13,6 +13,7 @@ from sqlalchemy.orm import Session
 
 from api.schemas import EvaluationCreate, EvaluationParams, JobCreate, SweepCreate
 from api.auth import Idempotency, sha256_hex
+from api.http_semantics import ID_SHOWN, listed
 from api.services.jobs import (
     get_job, new_edit_job, reconstruction_for, record_and_send, request_cancel, scene_deleted, submit, usable_scene,
 )
@@ -155,7 +156,7 @@ def create_sweep(*, session: Session, settings: Settings, queue: TaskQueue, key:
 def sweep_jobs(*, session: Session, key: ApiKey, sweep_id: str) -> list[Job]:
     jobs = list(session.scalars(select(Job).where(Job.batch_id == sweep_id, Job.owner_key_id == key.id)))
     if not jobs:
-        raise HTTPException(status.HTTP_404_NOT_FOUND, f"sweep {sweep_id!r} not found")
+        raise HTTPException(status.HTTP_404_NOT_FOUND, f"sweep {listed([sweep_id], width=ID_SHOWN)} not found")
     return jobs
 
 

@@ -17,7 +17,7 @@ from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
 from api.auth import Idempotency, check_active_jobs, lock_live_key, sha256_hex
-from api.http_semantics import try_again_soon
+from api.http_semantics import ID_SHOWN, listed, try_again_soon
 from api.paging import PageQuery, PageRows, read_page
 from api.schemas import JobCreate
 from api.services.scenes import get_scene, refuse_unless_usable
@@ -43,7 +43,7 @@ def get_job(*, session: Session, key: ApiKey, job_id: str) -> Job:
     missing one."""
     job = session.get(Job, job_id, populate_existing=True)
     if job is None or job.owner_key_id != key.id:
-        raise HTTPException(status.HTTP_404_NOT_FOUND, f"job {job_id!r} not found")
+        raise HTTPException(status.HTTP_404_NOT_FOUND, f"job {listed([job_id], width=ID_SHOWN)} not found")
     return job
 
 

@@ -14,7 +14,7 @@ from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
 from api.auth import Idempotency, check_upload_bytes, lock_live_key
-from api.http_semantics import try_again_soon
+from api.http_semantics import ID_SHOWN, listed, try_again_soon
 from api.paging import PageQuery, PageRows, read_page
 from api.uploads import UploadError, stage_upload, staging_folder
 from voxe_service.models import FAILED, QUEUED, RUNNING, ApiKey, Job, Reconstruction, Scene, new_id
@@ -70,7 +70,7 @@ def get_scene(*, session: Session, key: ApiKey, scene_id: str) -> Scene:
     """The key's scene; another key's scene is as absent as a missing one."""
     scene = session.get(Scene, scene_id)
     if scene is None or scene.owner_key_id != key.id:
-        raise HTTPException(status.HTTP_404_NOT_FOUND, f"scene {scene_id!r} not found")
+        raise HTTPException(status.HTTP_404_NOT_FOUND, f"scene {listed([scene_id], width=ID_SHOWN)} not found")
     return scene
 
 
