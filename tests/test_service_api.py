@@ -3279,3 +3279,14 @@ def test_a_404_shows_a_long_requested_id_cut(client):
         response = client.get(path)
         assert (response.status_code, response.json()["detail"]) == (404, detail), path
     assert client.get(f"/v1/jobs/{'a' * 32}").json()["detail"] == f"job {'a' * 32!r} not found"
+
+
+def test_an_empty_scene_id_filter_is_a_422_naming_it(client):
+    """Regression: GET /v1/jobs?scene_id= (a form's empty filter) answered an empty page, as if the key had no job,
+    where it names no scene at all."""
+    _job_row()
+    refused = client.get("/v1/jobs?scene_id=")
+    assert refused.status_code == 422
+    assert [(error["loc"], error["type"]) for error in refused.json()["detail"]] == [(["query", "scene_id"],
+                                                                                     "string_too_short")]
+    assert client.get("/v1/jobs").json()["total"] == 1

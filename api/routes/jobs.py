@@ -130,14 +130,15 @@ def create_job(body: JobCreate, response: Response, session: SessionDep, setting
 
 
 @router.get("", response_model=Page[JobOut], summary="List jobs, newest first",
-            responses={422: {"description": "a limit or offset out of range, or a cursor that is not this "
-                                              "listing's or is sent with offset (named)"}})
+            responses={422: {"description": "a limit or offset out of range, an empty scene_id, or a cursor that is "
+                                              "not this listing's or is sent with offset (named)"}})
 def list_jobs(
     session: SessionDep,
     key: CurrentKey,
     page: Annotated[PageQuery, Depends(page_query("/v1/jobs"))],
     state: JobState | None = Query(None),
-    scene_id: str | None = Query(None, pattern=r"^[^\x00]*$"),  # (documents the NUL refusal of http_semantics)
+    # (the pattern documents the NUL refusal of http_semantics; an empty one had listed no job: a 422)
+    scene_id: str | None = Query(None, min_length=1, pattern=r"^[^\x00]*$"),
 ) -> Page[JobOut]:
     found = jobs.list_jobs(session=session, key=key, state=state, scene_id=scene_id, page=page)
     return Page[JobOut](items=[job_out(j) for j in found.rows], total=found.total, limit=page.limit,
