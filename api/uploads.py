@@ -243,15 +243,54 @@ def _copy(src: BinaryIO, dest: Path, budget: _Budget, consumed=None, name: str =
             out.write(chunk)
 
 
-def _entry_name(info: zipfile.ZipInfo) -> str:
+_JAPANESE = "\u3000-\u30ff\u4e00-\u9fff\uff01-\uff9f"  # CJK punctuation, kana, ideographs, full- and half-width forms
+_JAPANESE_NAME = re.compile(f"[\\x00-\\x7f{_JAPANESE}]*")
+_KANA_OR_KANJI_RUN = re.compile("[\u3041-\u30ff\u4e00-\u9fff]{2}")  # (a cp437 "étés" reads as full-width "ＵＴ")
+
+
+def _legacy_bytes(info: zipfile.ZipInfo) -> bytes | None:
+    """The bytes of an entry's name stored without the zip UTF-8 flag (0x800) that are not UTF-8 (zipfile decoded
+    them as cp437); None for any other name (flagged, UTF-8, or one zipfile took from a Unicode path field)."""
+    if info.flag_bits & 0x800:
+        return None
+    try:
+        raw = info.filename.encode("cp437")
+        raw.decode("utf-8")
+    except UnicodeEncodeError:
+        return None
+    except UnicodeDecodeError:
+        return raw
+    return None
+
+
+def _legacy_encoding(infos: list[zipfile.ZipInfo]) -> str:
+    """How the archive's names without the UTF-8 flag that are not UTF-8 are read: as Shift-JIS (cp932: Japanese
+    Windows' Explorer and older zip tools; zipfile read "画像_0.png" as "ëµæ£_0.png", its frame "not found") where every
+    one of them reads so as ASCII and Japanese script and one holds two kana or kanji in a row; else as cp437,
+    the zip format's own, as zipfile reads them. An archive is written in one encoding, and a Western cp437 name read
+    as Shift-JIS makes single characters apart ("crème" as "cr確e"): the run of two tells them apart."""
+    names = []
+    for info in infos:
+        if (raw := _legacy_bytes(info)) is not None:
+            try:
+                names.append(raw.decode("cp932"))
+            except UnicodeDecodeError:
+                return "cp437"
+    japanese = all(_JAPANESE_NAME.fullmatch(name) for name in names) and any(map(_KANA_OR_KANJI_RUN.search, names))
+    return "cp932" if japanese else "cp437"
+
+
+def _entry_name(info: zipfile.ZipInfo, encoding: str = "cp437") -> str:
     """The entry's name. Info-ZIP's ``zip`` (Linux, macOS) stores UTF-8 names without the zip UTF-8 flag (0x800),
     which zipfile then decodes as cp437 ("café_0.png" as "caf├⌐_0.png": its frame "not found"); such a name whose
-    bytes are valid UTF-8 is read as UTF-8."""
+    bytes are valid UTF-8 is read as UTF-8, another in the archive's ``encoding`` (:func:`_legacy_encoding`)."""
+    if (raw := _legacy_bytes(info)) is not None:
+        return raw.decode(encoding)
     if info.flag_bits & 0x800:
         return info.filename
     try:
         return info.filename.encode("cp437").decode("utf-8")
-    except UnicodeError:  # really cp437, or a name zipfile took from a Unicode path field
+    except UnicodeError:  # a name zipfile took from a Unicode path field
         return info.filename
 
 
@@ -273,9 +312,9 @@ def extract_zip(source: BinaryIO, dest: Path, budget: _Budget) -> None:
     except (zipfile.BadZipFile, OSError, ValueError, EOFError) as exc:
         raise UploadError(f"archive is not a readable zip file: {exc}") from None
     with archive:
-        entries, seen = [], {}
+        entries, seen, encoding = [], {}, _legacy_encoding(archive.infolist())
         for info in archive.infolist():
-            info.filename = _entry_name(info)  # (zipfile checks the local header against ``orig_filename``)
+            info.filename = _entry_name(info, encoding)  # (zipfile checks the local header against ``orig_filename``)
             path = safe_relative(info.filename)
             if stat.S_ISLNK(info.external_attr >> 16):
                 raise UploadError(f"refused entry {info.filename!r}: symbolic links are not allowed")

@@ -429,6 +429,27 @@ def test_utf8_names_info_zip_stores_without_the_utf8_flag_are_read_as_utf8(clien
         assert name in stored.namelist()
 
 
+def test_shift_jis_names_stored_without_the_utf8_flag_are_read_as_shift_jis(client, dataset, root):  # noqa: F811
+    """Japanese Windows' zips store names in Shift-JIS (cp932) without the UTF-8 flag: zipfile read "画像/0.png" as
+    cp437, "ëµæ£/0.png", and the frame naming it was "not found" (422). A Western cp437 name stays cp437."""
+    meta = _meta(dataset)
+    meta["frames"][0]["file_path"] = "./画像/0"
+    entries = _dataset_entries(dataset, drop="train/r_0.png", json_text=json.dumps(meta))
+    placeholder, raw = "mic/QQQQ/0.png", "mic/画像/0.png".encode("cp932")  # the same length: the name's bytes swapped
+    archive = _zip({**{f"mic/{name}": data for name, data in entries.items()},
+                    placeholder: (dataset / "train" / "r_0.png").read_bytes()}).replace(placeholder.encode(), raw)
+    with zipfile.ZipFile(io.BytesIO(archive)) as zf:
+        assert "mic/ëµæ£/0.png" in zf.namelist()  # as zipfile reads it
+    response = client.post("/v1/scenes", files={"archive": ("sjis.zip", archive, "application/zip")})
+    assert response.status_code == 201, response.text
+    with zipfile.ZipFile(root / "storage" / "scenes" / response.json()["id"] / "dataset.zip") as stored:
+        assert "画像/0.png" in stored.namelist()
+    from api.uploads import _entry_name, _legacy_encoding
+
+    western = [zipfile.ZipInfo(name) for name in ("crème.png", "étés.png")]  # as zipfile reads cp437 names
+    assert [_entry_name(info, _legacy_encoding(western)) for info in western] == ["crème.png", "étés.png"]
+
+
 @pytest.mark.parametrize("folder_entry", ["attribute", "backslash"])
 def test_folder_entries_without_a_trailing_slash_are_folders(client, dataset, root, folder_entry):  # noqa: F811
     """A zip may mark its folder entries by their attributes alone (MS-DOS's directory bit, a Unix S_IFDIR mode), or
