@@ -1375,6 +1375,24 @@ def test_only_a_running_job_and_stage_show_a_time_left(live, browser):
     faults(driver, {})
 
 
+def test_a_prompt_over_the_api_s_limit_is_refused_beside_it_not_cut(live, browser):
+    """The prompt field's maxlength="500" cut a longer prompt typed or pasted into it to its first 500 UTF-16 units
+    (fewer characters than the API's 500 where it holds emoji), and the edit ran with the cut prompt, saying nothing.
+    The prompt is sent whole and the API's 422 said beside it."""
+    svc, token, _archive = live
+    driver = browser
+    set_key(driver, svc, token)
+    prompt = "a mic made of " + "gold " * 120  # 614 characters
+    field = driver.find_element("id", "job-prompt")
+    field.send_keys(prompt)
+    assert field.get_attribute("value") == prompt
+    driver.find_element("css selector", "#job-form button").click()
+    shown = lambda: text(driver, '[data-error-for="prompt"]')  # noqa: E731
+    wait_until(shown, 10, what="the API's refusal of the prompt")
+    assert shown() == "String should have at most 500 characters (prompt)"
+    assert len(requested(driver, "/v1/jobs", "POST")) == 1
+
+
 def test_a_long_one_word_prompt_wraps_inside_the_window(live, browser):
     """A prompt (and the error quoting it) of one 500-character word, in the job list and on its job page: the
     text wraps, the page stays as wide as the window, and the list's State column stays on screen (the table and
