@@ -53,6 +53,7 @@ from starlette.routing import Match, Mount
 
 from voxe_service.db import DATABASE_UNAVAILABLE, database_outage
 from voxe_service.storage import StorageError, StorageUnavailable
+from voxe_service.webhooks import shorter
 
 log = logging.getLogger("voxe.api")
 _PROBLEM = {"application/json": {"schema": {"$ref": "#/components/schemas/Problem"}}}
@@ -114,7 +115,8 @@ async def method_not_allowed(request: Request, exc: StarletteHTTPException) -> R
     allow = ", ".join(allowed_methods(request.app, route_path(request.scope)))
     if request.method == "OPTIONS":
         return Response(status_code=204, headers={"Allow": allow})
-    return JSONResponse({"detail": f"method {request.method} is not allowed on {request.url.path}; allowed: {allow}"},
+    path = shorter(request.url.path, ID_SHOWN)  # (the client's, of any length)
+    return JSONResponse({"detail": f"method {request.method} is not allowed on {path}; allowed: {allow}"},
                         status_code=405, headers={"Allow": allow})
 
 
@@ -130,7 +132,7 @@ def sends_body(request: Request) -> bool:
     return "transfer-encoding" in request.headers or not (length.isdigit() and int(length) == 0)
 
 
-ID_SHOWN = 100  # characters of an id or name from a request's path a 404 shows (ids are 32; artifact names, 100 at most)
+ID_SHOWN = 100  # characters of an id, name or path from a request a 404 or 405 shows (ids are 32; artifact names fewer)
 
 
 def listed(names: list[str], most: int = 5, width: int = 40) -> str:

@@ -569,6 +569,13 @@ def test_the_ui_s_static_files_answer_options_and_405_with_the_methods_they_serv
     assert refused.json()["detail"] == "method POST is not allowed on /static/app.js; allowed: GET, HEAD, OPTIONS"
 
 
+def test_a_405_shows_a_long_path_cut(client):
+    """Regression: a 405 echoed the whole path, the client's, of any length (PUT /v1/jobs/<5000 x>: a 5 kB detail)."""
+    refused = client.put(f"/v1/jobs/{'x' * 5000}")
+    assert refused.status_code == 405 and refused.json()["detail"] == (
+        f"method PUT is not allowed on /v1/jobs/{'x' * 91}...; allowed: GET, HEAD, OPTIONS")
+
+
 def test_behind_a_proxy_prefix_the_405_still_names_the_paths_methods(client):
     """``uvicorn --root-path /api``: the request path carries the prefix ("/api/v1/jobs"), the routes do not."""
     import anyio
