@@ -906,6 +906,23 @@ def test_an_api_with_authentication_off_refusing_the_page_does_not_ask_for_a_key
     faults(driver, {})
 
 
+def test_an_api_serving_the_page_without_a_key_says_none_is_needed(live, browser):
+    """With authentication off the API serves the page's requests sent without a key: the key field had said "no key"
+    all the same, as if one were missing."""
+    svc, _token, _archive = live
+    driver = browser
+    empty = {"status": 200, "type": "application/json",
+             "body": json.dumps({"items": [], "total": 0, "limit": 50, "offset": 0, "next_cursor": None})}
+    driver.get(f"{svc.base}/")
+    use_key(driver, "")
+    faults(driver, {"/v1/jobs?": empty, "/v1/scenes?": empty})  # as an API with authentication off answers
+    driver.refresh()
+    wait_until(lambda: "authentication is off" in text(driver, "#key-state"), 10, what="the key field's state")
+    assert text(driver, "#key-state") == "no key needed: authentication is off"
+    assert text(driver, "#jobs-range") == "no jobs"
+    faults(driver, {})
+
+
 def test_a_job_page_opened_in_a_new_tab_asks_for_the_key_and_loads_with_it(live, browser):
     """A job's link opened in a new tab (a middle click) has no key: sessionStorage is the tab's, and the key is kept
     nowhere longer. The job page refused 401 now says a key is needed, as the home page does, and loads once one is

@@ -36,6 +36,9 @@ async function api(path, answer, { method = "GET", body, headers = {}, signal } 
   if (!answer.fits(value)) {
     throw new ApiError(response.status, `the answer (${text ? text.slice(0, 200) : "empty"}) is no ${answer.name}`);
   }
+  // Served without a key: authentication is off (with it on, /v1 answers 401). The field had said "no key", as if
+  // one were missing.
+  if (!sent.Authorization && !apiKey()) $("#key-state").textContent = "no key needed: authentication is off";
   return value;
 }
 
