@@ -610,6 +610,19 @@ def test_a_receiver_whose_urls_name_each_job_is_one_receiver_to_the_cap(tmp_path
     assert second == []
 
 
+def test_one_host_spelt_two_ways_is_one_receiver_to_the_cap():
+    """The cap counted ``https://bücher.example/`` and ``https://xn--bcher-kva.example/`` (the same name, which the
+    sender looks up as the latter) as two receivers, each its own share of the slots; so were ``XN--...`` and a
+    trailing dot. Every spelling of a host is one receiver now; another host or port is still another."""
+    from voxe_service.webhooks import webhook_origin
+
+    spellings = ["https://bücher.example/hooks/1", "https://BÜCHER.example/hooks/2", "https://xn--bcher-kva.example/3",
+                 "https://XN--BCHER-KVA.EXAMPLE:443/4", "https://bücher.example./5"]
+    assert {webhook_origin(url) for url in spellings} == {"https://xn--bcher-kva.example:443"}
+    assert webhook_origin("https://bucher.example/") == "https://bucher.example:443"
+    assert webhook_origin("https://bücher.example:8443/") == "https://xn--bcher-kva.example:8443"
+
+
 def test_a_claims_work_does_not_grow_with_a_dead_receivers_backlog(tmp_path, monkeypatch):
     """A claim ranked every due delivery, each poll (twice a second): with 100,000 due to a dead receiver it took a
     quarter of a second on SQLite, a tenth on PostgreSQL, where it had taken 2 ms. It reads each receiver's earliest

@@ -459,13 +459,17 @@ def enqueue(session: Session, job_id: str, event) -> None:
 
 
 def webhook_origin(url: str) -> str:
-    """The receiver ``url`` goes to, ``scheme://host:port`` (the host in lower case, the scheme's port where it names
-    none): what the sender's cap counts by, so a receiver whose URLs name each job (``https://host/hooks/job-123``)
-    is one receiver. A URL that cannot be read so (stored before the checks read it as they do now) is its own.
+    """The receiver ``url`` goes to, ``scheme://host:port`` (the host as the sender looks it up: IDNA 2008, in lower
+    case, with no trailing dot; the scheme's port where it names none): what the sender's cap counts by, so a receiver
+    whose URLs name each job (``https://host/hooks/job-123``) is one receiver, and so is one whose host is spelt two
+    ways (``bücher.example``, ``XN--BCHER-KVA.example.``). A URL that cannot be read so (stored before the checks
+    read it as they do now) is its own.
 
     Examples:
         >>> webhook_origin("https://Hooks.Example.com/jobs/123?x=1"), webhook_origin("http://[::1]:8080/hook")
         ('https://hooks.example.com:443', 'http://[::1]:8080')
+        >>> webhook_origin("https://Bücher.example/a") == webhook_origin("https://xn--bcher-kva.example./b")
+        True
     """
     try:
         parts = urlsplit(url)
@@ -474,6 +478,10 @@ def webhook_origin(url: str) -> str:
         return url
     if not host:
         return url
+    try:
+        host = httpx.URL(url).raw_host.decode("ascii").rstrip(".") or host
+    except httpx.InvalidURL:  # a host IDNA 2008 refuses: check_target refuses it now, an older row may hold one
+        pass
     scheme = parts.scheme.lower()
     host = f"[{host}]" if ":" in host else host
     return f"{scheme}://{host}:{port or (443 if scheme == 'https' else 80)}"
