@@ -1822,8 +1822,38 @@ def test_a_last_event_id_sent_on_two_lines_is_a_422_not_its_first_line(client):
         refused = client.get(url, headers=[("Accept", "text/event-stream"), *(("Last-Event-ID", v) for v in lines)])
         assert refused.status_code == 422, lines
         assert refused.json()["detail"] == "Last-Event-ID was sent on 2 lines: it holds one value, send it once"
-    with client.stream("GET", url, headers={"Accept": "text/event-stream", "Last-Event-ID": "5"}) as one:
+    with client.stream("GET", url, headers={"Accept": "text/event-stream", "Last-Event-ID": "0"}) as one:
         assert one.status_code == 200  # (the job has ended: its stream ends at the hub's first poll)
+
+
+def test_a_last_event_id_past_the_jobs_newest_event_is_a_422_not_a_stream_without_its_events(client):
+    """A stream resumed after an id no stream of the job sent (another job's, a restored database's), past the job's
+    newest event, had sent none of its events, its end included, for as long as the job ran (ids count the whole
+    table's): the client heard only snapshots, and no 'succeeded'. It is a 422 saying so; the job's own newest id (or
+    an earlier one) still resumes, and the JSON timeline ignores the header."""
+    from voxe_client.client import parse_sse
+    from voxe_service.db import session_scope
+    from voxe_service.models import JobEvent
+
+    job_id, sse = _job_row(), {"Accept": "text/event-stream"}
+    with session_scope() as session:
+        events = [JobEvent(job_id=job_id, kind=kind) for kind in ("stage_started", "succeeded")]
+        session.add_all(events)
+        session.flush()
+        newest = events[-1].id
+    url = f"/v1/jobs/{job_id}/events"
+    for past in (newest + 1, newest + 10**6):
+        refused = client.get(url, headers={**sse, "Last-Event-ID": str(past)})
+        assert refused.status_code == 422, past
+        assert refused.json()["detail"] == (
+            f"Last-Event-ID {past} is past job {job_id}'s newest event ({newest}): no stream of it sent that id; "
+            "resume after an id its stream sent, or leave Last-Event-ID out for the whole timeline")
+    with client.stream("GET", url, headers={**sse, "Last-Event-ID": str(newest - 1)}) as resumed:
+        assert resumed.status_code == 200
+        assert [event["id"] for event in parse_sse(resumed.iter_lines()) if event["id"]] == [str(newest)]
+    assert len(client.get(url, headers={"Last-Event-ID": str(newest + 1)}).json()) == 2
+    none_yet = client.get(f"/v1/jobs/{_job_row()}/events", headers={**sse, "Last-Event-ID": "1"})
+    assert none_yet.status_code == 422 and "newest event (it has none yet)" in none_yet.json()["detail"]
 
 
 def test_a_scene_deleted_by_another_request_meanwhile_is_a_404_not_a_second_204(client, monkeypatch):

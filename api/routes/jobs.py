@@ -7,7 +7,7 @@ from typing import Annotated
 
 from fastapi import APIRouter, Depends, Header, HTTPException, Query, Request, Response, status
 from fastapi.responses import StreamingResponse
-from sqlalchemy import select
+from sqlalchemy import func, select
 
 from api.auth import mark_replayed, replayed_answer
 from api.deps import CurrentKey, IdempotencyKey, QueueDep, SessionDep, SettingsDep
@@ -159,7 +159,8 @@ def get_job(job_id: str, session: SessionDep, key: CurrentKey) -> JobOut:
                      "headers": {"Vary": {"description": "Accept: the answer depends on it",
                                           "schema": {"type": "string"}}},
                      "content": {SSE_MEDIA_TYPE: {"schema": {"type": "string"}}}},
-               422: {"description": "Last-Event-ID is not an event id, or is sent on several lines"}},
+               422: {"description": "Last-Event-ID is not an event id, is past the job's newest event, or is sent on "
+                                    "several lines"}},
     summary="The job's timeline (stages, checkpoints, artifacts, its end), or a live stream of it",
 )
 def list_events(job_id: str, request: Request, response: Response, session: SessionDep, key: CurrentKey,
@@ -171,6 +172,7 @@ def list_events(job_id: str, request: Request, response: Response, session: Sess
     negotiated = {"Vary": "Accept"}
     if wants_stream(request.headers.getlist("accept")):
         after = _event_id(only_line("Last-Event-ID", request.headers.getlist("last-event-id")))
+        _check_sent(session, job_id, after)
         session.close()  # the stream reads through the hub's short sessions: hold no connection meanwhile
         return StreamingResponse(request.app.state.event_hub.stream(job_id, key.id, after), media_type=SSE_MEDIA_TYPE,
                                  headers={"Cache-Control": KEYS_OWN, "X-Accel-Buffering": "no", **negotiated})
@@ -223,6 +225,20 @@ def _event_id(value: str | None) -> int:
 
 
 MAX_EVENT_ID = 2**63 - 1
+
+
+def _check_sent(session, job_id: str, after: int) -> None:
+    """A 422 where ``after`` is past the job's newest event: no stream of the job sent that id (it is another job's,
+    or a database's since restored), and a stream resumed after it had sent none of the job's events, its end
+    included (ids are the whole table's: they would not reach it for as long as the job runs)."""
+    if not after:
+        return
+    newest = session.scalar(select(func.max(JobEvent.id)).where(JobEvent.job_id == job_id)) or 0
+    if after > newest:
+        raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT,
+                            f"Last-Event-ID {after} is past job {job_id}'s newest event "
+                            f"({newest if newest else 'it has none yet'}): no stream of it sent that id; resume after "
+                            "an id its stream sent, or leave Last-Event-ID out for the whole timeline")
 
 
 def progress_view(job: Job) -> dict:
