@@ -420,6 +420,34 @@ def test_wait_rides_out_the_outage_its_reconnect_for_allows_then_says_how_to_fol
                                        "connection refused\n") and clock[0] == 0
 
 
+def test_wait_on_a_job_deleted_meanwhile_says_it_was_deleted(monkeypatch, capsys):
+    """The service ends the stream of a job deleted meanwhile (or of a key revoked) with an ``error`` event saying so;
+    ``voxe wait`` then read the job and ended on that answer, "GET /v1/jobs/j1: HTTP 404: job 'j1' not found", as if
+    the id were wrong. It says what the stream said, still a refusal's exit status."""
+    import httpx
+
+    import voxe_core.cli.service as service
+    from voxe_client import Client, ServiceError
+
+    said = {"deleted": (b"job 'j1' was deleted", 404), "revoked": (b"the API key of this stream was revoked", 401)}
+
+    for why, (detail, status) in said.items():
+        def answer(request: httpx.Request, detail=detail, status=status) -> httpx.Response:
+            if request.url.path.endswith("/events"):
+                return httpx.Response(200, headers={"content-type": "text/event-stream"},
+                                      content=b'id: 3\nevent: stage_started\ndata: {}\n\n'
+                                              b'event: error\ndata: {"detail": "' + detail + b'"}\n\n')
+            return httpx.Response(status, json={"detail": "job 'j1' not found" if status == 404 else "invalid key"})
+
+        monkeypatch.setattr(service, "_client",
+                            lambda args, answer=answer: Client(transport=httpx.MockTransport(answer)))
+        assert main(["wait", "j1", "--quiet"]) == 2, why
+        assert capsys.readouterr().err == f"voxe wait: error: event stream of job j1 ended: {detail.decode()}\n"
+        with pytest.raises(ServiceError) as raised:
+            Client(transport=httpx.MockTransport(answer)).wait("j1")
+        assert raised.value.status == status
+
+
 def test_wait_says_when_it_reconnects_and_when_the_stream_is_back(monkeypatch, capsys):
     """While ``voxe wait`` rode out an outage its progress line froze with nothing said, as if the job had hung."""
     import httpx

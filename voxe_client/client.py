@@ -491,15 +491,21 @@ class Client:
         past it, a :class:`JobWaitTimeout` names the job and the state it was last heard in (it had waited for good on
         a job stuck queued or running). One that ran out before the stream said where the job stood (``timeout=0``)
         looks at the job once first, for at most :data:`LOOK_AT_JOB_S` more: one ended is returned (it had been a
-        JobWaitTimeout, nothing asked)."""
+        JobWaitTimeout, nothing asked). A stream the service ended with an ``error`` (the job deleted, the key
+        revoked meanwhile) is a ServiceError saying so, with the status the job's record is then answered with (it
+        had been that answer's own, ``HTTP 404: job 'j1' not found``, as if the job had never been)."""
         deadline = None if timeout is None else time.monotonic() + timeout
         path = f"/v1/jobs/{_segment(job_id)}"
+        ended_by = None
         try:
             for event in self.events(job_id, reconnect_for=reconnect_for, on_reconnect=on_reconnect, timeout=timeout):
                 if event["event"] == "progress" and on_progress is not None:
                     on_progress(event["data"])
                 elif event["event"] == "warning" and on_warning is not None:
                     on_warning(event["data"])
+                elif event["event"] == "error":
+                    detail = event["data"].get("detail") if isinstance(event["data"], dict) else None
+                    ended_by = detail if isinstance(detail, str) else reprlib.repr(event["data"])
         except JobWaitTimeout as timed_out:
             if timed_out.progress is not None:  # the stream said where it stood, and that it had not ended
                 raise
@@ -512,7 +518,12 @@ class Client:
             if job["state"] not in TERMINAL_STATES:
                 raise
             return job
-        return self._record("job", "GET", path, deadline=deadline)
+        try:
+            return self._record("job", "GET", path, deadline=deadline)
+        except ServiceError as exc:
+            if ended_by is None:
+                raise
+            raise ServiceError(f"event stream of job {job_id} ended: {ended_by}", exc.status, exc.detail) from None
 
     def artifacts(self, job_id: str) -> list[dict]:
         """``GET /v1/jobs/{id}/artifacts``: the job's artifacts, each ``{name, size, sha256, ...}``; an answer that is
