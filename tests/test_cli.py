@@ -922,6 +922,23 @@ def test_bad_option_values_exit_2(tmp_path, capsys):
                 capsys.readouterr().err
 
 
+def test_a_real_valued_option_that_is_no_finite_number_is_refused_naming_the_option(capsys):
+    """``voxe edit --reg-weight inf`` had been refused only after the grid was read, naming the setting it fills,
+    "regulariser_weight must be >= 0 and finite in float32", and ``voxe refine --tv-weight inf`` "the fit's lr must
+    be positive, tv_weight non-negative ...": no option the user typed. Each is refused as the options are read, by
+    the option's name."""
+    edit = ["edit", "g", "--prompt", "p", "--out", "o"]
+    refine = ["refine", "e", "--initial", "g", "--prompt", "p", "--edit-words", "p", "--out", "o"]
+    options = [(edit, name) for name in ("--lr", "--reg-weight", "--guidance-scale")] + [
+        (refine, name) for name in ("--smoothing-sigma", "--lr", "--tv-weight", "--sigma", "--smoothness")]
+    for command, option in options:
+        for value in ("inf", "-inf", "nan", "1e400", "ten"):
+            with pytest.raises(SystemExit) as exc:
+                main([*command, f"{option}={value}"])
+            assert exc.value.code == 2
+            assert f"error: argument {option}: must be a finite number, got {value!r}" in capsys.readouterr().err
+
+
 @pytest.mark.parametrize("text, message", [
     ('{"a": ' * 5000 + "1" + "}" * 5000, "its arrays or objects nest too deeply"),  # had been a RecursionError
     # had been argparse's "invalid _json_object value: '{...}'", quoting the whole text

@@ -10,6 +10,7 @@ import contextlib
 import contextvars
 import fcntl
 import importlib
+import math
 import os
 import re
 import shutil
@@ -275,6 +276,19 @@ def positive_seconds(text: str) -> float:
     value = float(text)
     if not 0 < value < float("inf"):
         raise argparse.ArgumentTypeError(f"must be a positive number of seconds, got {text!r}")
+    return value
+
+
+def finite_float(text: str) -> float:
+    """A real-valued option, refused naming the option where it is no finite number (``inf``, ``nan``, ``1e400``): the
+    setting it fills had refused it naming its own field, which no option is called (``--reg-weight inf``:
+    "regulariser_weight must be >= 0 and finite in float32")."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"must be a finite number, got {text!r}")
     return value
 
 

@@ -13,8 +13,8 @@ from pathlib import Path
 
 from voxe_core import constants as paper
 from voxe_core.cli.common import (
-    EXIT_INTERRUPTED, EXIT_USAGE, add_grid_output_arguments, add_model_arguments, add_view_arguments, check_device, load_guidance, load_views,
-    non_negative_int, positive_int, positive_int_at_most, remove_earlier_outputs, run_stage, seed, view_options_given, writable_folder,
+    EXIT_INTERRUPTED, EXIT_USAGE, add_grid_output_arguments, add_model_arguments, add_view_arguments, check_device, finite_float, load_guidance,
+    load_views, non_negative_int, positive_int, positive_int_at_most, remove_earlier_outputs, run_stage, seed, view_options_given, writable_folder,
 )
 from voxe_core.guidance.prompts import check_no_special_tokens, check_prompt_length, names_something
 from voxe_core.presets import BATCH_SIZE, EDIT_SCHEDULES, PREVIEW_EVERY, SEED, TIMESTEP_SCHEDULES, edit_config
@@ -47,11 +47,11 @@ def add_parsers(commands, common) -> None:
                          f"§5's {_SCENE.iterations}, as in the service's jobs (any other count runs as given)")
     ed.add_argument("--render-size", type=positive_int_at_most(paper.MAX_RENDER_SIZE), default=paper.RENDER_SIZE,
                     help=f"training render size in pixels (at most {paper.MAX_RENDER_SIZE})")
-    ed.add_argument("--lr", type=float, default=paper.EDIT_LR, help="Adam's learning rate")
+    ed.add_argument("--lr", type=finite_float, default=paper.EDIT_LR, help="Adam's learning rate")
     ed.add_argument("--regulariser", default=paper.DEFAULT_REGULARISER,
                     help="reg3d | reg3d_plus | volumetric_l1 | volumetric_l2 | image_l1 | image_l2 (image_* need --data)")
-    ed.add_argument("--reg-weight", type=float, default=paper.DEFAULT_REGULARISER_WEIGHT)
-    ed.add_argument("--guidance-scale", type=float, default=paper.DEFAULT_GUIDANCE_SCALE)
+    ed.add_argument("--reg-weight", type=finite_float, default=paper.DEFAULT_REGULARISER_WEIGHT)
+    ed.add_argument("--guidance-scale", type=finite_float, default=paper.DEFAULT_GUIDANCE_SCALE)
     ed.add_argument("--schedule", choices=TIMESTEP_SCHEDULES, default=TIMESTEP_SCHEDULES[0],
                     help="time-step annealing floor: paper 0.35, authors' code 0.22; a scene-backbone grid "
                          f"anneals from iteration {_SCENE.i_start} every {_SCENE.every} instead (SPEC §5)")

@@ -15,8 +15,8 @@ from pathlib import Path
 
 from voxe_core import constants as paper
 from voxe_core.cli.common import (
-    EXIT_INTERRUPTED, EXIT_USAGE, add_grid_output_arguments, add_model_arguments, check_device, load_guidance,
-    move_staged, non_negative_int, positive_int, positive_int_at_most, remove_earlier_outputs, run_stage, seed, staging_folder,
+    EXIT_INTERRUPTED, EXIT_USAGE, add_grid_output_arguments, add_model_arguments, check_device, finite_float,
+    load_guidance, move_staged, non_negative_int, positive_int, positive_int_at_most, remove_earlier_outputs, run_stage, seed, staging_folder,
     writable_file, writable_folder,
 )
 from voxe_core.guidance.prompts import (check_edit_words_name_an_edit, check_edit_words_read,
@@ -54,10 +54,10 @@ def add_parsers(commands, common) -> None:
                      help=f"attention-grid fitting steps after the back-projection start (the paper: {paper.REFINE_ITERATIONS})")
     ref.add_argument("--lift-start", choices=LIFT_STARTS, default=LIFT_START,
                      help="start of the attention grids: the maps' weighted back-projection, or 0 everywhere (the paper's fit)")
-    ref.add_argument("--smoothing-sigma", type=float, default=paper.SERVICE_SMOOTHING_SIGMA,
+    ref.add_argument("--smoothing-sigma", type=finite_float, default=paper.SERVICE_SMOOTHING_SIGMA,
                      help="Gaussian std (attention cells) of the 2D maps' smoothing (ours before issue 18: 1.0)")
-    ref.add_argument("--lr", type=float, default=paper.REFINE_LR, help="Adam's learning rate on the attention grids")
-    ref.add_argument("--tv-weight", type=float, default=paper.REFINE_TV_WEIGHT, help="total variation weight of the attention grids")
+    ref.add_argument("--lr", type=finite_float, default=paper.REFINE_LR, help="Adam's learning rate on the attention grids")
+    ref.add_argument("--tv-weight", type=finite_float, default=paper.REFINE_TV_WEIGHT, help="total variation weight of the attention grids")
     ref.add_argument("--render-size", type=positive_int_at_most(paper.MAX_RENDER_SIZE), default=paper.RENDER_SIZE,
                      help=f"render / attention-map size in pixels (at most {paper.MAX_RENDER_SIZE})")
     ref.add_argument("--views", type=positive_int_at_most(paper.MAX_REFINE_VIEWS), default=paper.REFINE_VIEWS,
@@ -71,8 +71,8 @@ def add_parsers(commands, common) -> None:
                      help="up to this many voxels tied to the 'object' terminal, drawn at random (--seed) among "
                           f"P_object > P_edit + {paper.SERVICE_OBJECT_SEED_MARGIN} (the authors' code: among "
                           f"P_object > P_edit; the paper's text: the top {paper.OBJECT_SEEDS} by P_object)")
-    ref.add_argument("--sigma", type=float, default=paper.CUT_SIGMA, help="colour scale of the graph cut's pairwise weights")
-    ref.add_argument("--smoothness", type=float, default=paper.CUT_SMOOTHNESS, help="graph-cut smoothness weight λ")
+    ref.add_argument("--sigma", type=finite_float, default=paper.CUT_SIGMA, help="colour scale of the graph cut's pairwise weights")
+    ref.add_argument("--smoothness", type=finite_float, default=paper.CUT_SMOOTHNESS, help="graph-cut smoothness weight λ")
     ref.add_argument("--no-view-words", action="store_true",
                      help="the edit ran with voxe edit --no-view-words: its attention prompt has none either (as "
                           "the service's view_words does for both stages)")
