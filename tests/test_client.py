@@ -98,6 +98,23 @@ def test_a_url_without_http_or_a_host_is_bad_input_not_a_service_not_reached(cap
     Client("https://svc.test:8443/voxe/").close()
 
 
+def test_a_service_url_whose_port_is_past_65535_or_0_is_refused_not_another_ports_service_asked(capsys):
+    """httpx takes any port number and the socket connects to it modulo 65536: ``--api http://127.0.0.1:99999`` had
+    asked (with the API key) whatever listens on port 34463, and port 0 failed as a service not reached (exit 3, try
+    again later), for a typo. Both are bad input naming the port; 1 and 65535 are ports."""
+    from voxe_core.cli import main
+
+    for url, port in (("http://127.0.0.1:99999", 99999), ("https://svc.test:65536/voxe", 65536),
+                      ("http://127.0.0.1:0", 0)):
+        message = f"{url!r} is not a service URL: its port {port} is none of 1 to 65535"
+        with pytest.raises(ValueError, match=f"^{re.escape(message)}$"):
+            Client(url, api_key="k")
+        assert main(["status", "j1", "--api", url]) == 2
+        assert capsys.readouterr().err == f"voxe status: error: {message}\n"
+    for url in ("http://127.0.0.1:1", "https://svc.test:65535/voxe/"):
+        Client(url).close()
+
+
 class _Dropping(httpx.SyncByteStream):
     """A response body that sends ``chunks`` and then loses the connection."""
 

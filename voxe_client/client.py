@@ -215,6 +215,9 @@ class Client:
         if url.scheme not in ("http", "https") or not url.host:  # (each call had failed as a service not reached)
             raise ValueError(f"{base_url!r} is not a service URL: it takes http:// or https:// and a host, as "
                              f"{DEFAULT_URL}")
+        if url.port is not None and not 0 < url.port <= 65535:  # httpx takes any number, and the socket then
+            # connects to it modulo 65536: --api http://host:80000 had sent every call, and its key, to port 14464
+            raise ValueError(f"{base_url!r} is not a service URL: its port {url.port} is none of 1 to 65535")
         self._http = httpx.Client(base_url=url, headers=headers, timeout=timeout, transport=transport)
 
     def __enter__(self) -> "Client":
