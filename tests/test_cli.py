@@ -448,6 +448,31 @@ def test_wait_on_a_job_deleted_meanwhile_says_it_was_deleted(monkeypatch, capsys
         assert raised.value.status == status
 
 
+def test_wait_on_a_job_deleted_while_its_stream_was_lost_says_it_was_deleted(monkeypatch, capsys):
+    """A job deleted while ``voxe wait`` reconnected to a stopping API's stream was answered 404 at the reconnect, and
+    the wait ended "GET /v1/jobs/j1/events: HTTP 404: job 'j1' not found", as if the id were wrong: it says the job
+    is gone, deleted while it was followed."""
+    import httpx
+
+    import voxe_client.client as client_module
+    import voxe_core.cli.service as service
+    from voxe_client import Client
+
+    monkeypatch.setattr(client_module.time, "sleep", lambda seconds: None)
+
+    def answer(request: httpx.Request) -> httpx.Response:
+        if "last-event-id" not in request.headers:  # the API stops, ending the stream
+            return httpx.Response(200, headers={"content-type": "text/event-stream"},
+                                  content=b'id: 8\nevent: checkpoint\ndata: {}\n\n')
+        return httpx.Response(404, json={"detail": "job 'j1' not found"})
+
+    monkeypatch.setattr(service, "_client", lambda args: Client(transport=httpx.MockTransport(answer)))
+    assert main(["wait", "j1", "--quiet"]) == 2
+    assert capsys.readouterr().err.splitlines()[-1] == (
+        "voxe wait: error: event stream of job j1 ended: the job is gone, deleted while it was followed "
+        "(GET /v1/jobs/j1/events: HTTP 404: job 'j1' not found)")
+
+
 def test_wait_says_when_it_reconnects_and_when_the_stream_is_back(monkeypatch, capsys):
     """While ``voxe wait`` rode out an outage its progress line froze with nothing said, as if the job had hung."""
     import httpx

@@ -377,7 +377,8 @@ class Client:
         reconnects; ``progress`` snapshots carry no id.
         ``on_reconnect`` hears a line when the stream is lost and one when it is back, after how long that loss lasted
         (the events had stopped with nothing said). A stream never opened is an error at once: a wrong URL is not
-        waited for, nor an answer that is no event stream (a proxy's page); once one opened, such an answer is a loss.
+        waited for, nor an answer that is no event stream (a proxy's page); once one opened, such an answer is a loss,
+        and a 404 an error saying the job was deleted while it was followed (it had read as a wrong id).
 
         With ``timeout`` (seconds), a job not ended by then is a :class:`JobWaitTimeout` naming it and the state it
         was last heard in. It is checked at each line the stream brings (the service's keepalive comes every 15 s)
@@ -432,7 +433,13 @@ class Client:
                         if _resend_wait(response, attempts, False) is not None:
                             left()  # a wait for it cut at the deadline: the timeout, not the answer it stood on
                         if not opened or response.status_code not in PROXY_UNAVAILABLE:
-                            _raise_for_error(_read_capped(response, "GET", path), "GET", path)
+                            try:
+                                _raise_for_error(_read_capped(response, "GET", path), "GET", path)
+                            except ServiceError as exc:
+                                if not opened or exc.status != 404:  # (one opened: the job was there then)
+                                    raise
+                                raise ServiceError(f"event stream of job {job_id} ended: the job is gone, deleted "
+                                                   f"while it was followed ({exc})", exc.status, exc.detail) from None
                         lost = f"HTTP {response.status_code} {response.reason_phrase}"
                     elif not _is_event_stream(response):  # (its lines had restarted the reconnect window, for good)
                         lost = (f"{self.base_url} answered {response.status_code} with "
