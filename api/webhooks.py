@@ -111,6 +111,8 @@ class WebhookSender:
         try:
             with session_scope() as session:
                 delivery = session.get(WebhookDelivery, delivery_id)
+                if delivery is None:  # its job was deleted (with its scene) since the claim: nothing to send
+                    return
                 secret = session.scalar(select(ApiKey.webhook_secret).join(Job, Job.owner_key_id == ApiKey.id)
                                         .where(Job.id == delivery.job_id))
             try:

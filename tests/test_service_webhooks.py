@@ -623,6 +623,36 @@ def test_one_host_spelt_two_ways_is_one_receiver_to_the_cap():
     assert webhook_origin("https://bücher.example:8443/") == "https://xn--bcher-kva.example:8443"
 
 
+def test_a_delivery_whose_job_was_deleted_after_its_claim_is_dropped_without_a_warning(tmp_path, monkeypatch, caplog):
+    """A job deleted (with its scene) between its delivery's claim and its attempt had logged a warning with the
+    traceback of an AttributeError ("'NoneType' object has no attribute 'job_id'"), as if the sender were broken. Its
+    delivery went with it: nothing is sent, nothing logged, and it is counted out of the attempts in flight."""
+    from sqlalchemy import delete, func, select
+
+    from api.webhooks import WebhookSender
+    from voxe_service.db import session_scope
+    from voxe_service.models import Job, WebhookDelivery
+    from voxe_service.settings import get_settings
+
+    due_deliveries(tmp_path, monkeypatch, f"sqlite:///{tmp_path / 'voxe.db'}",
+                   [(f"http://127.0.0.1:{closed_port()}/hook", -1)])
+    sender = WebhookSender(get_settings())
+    sent = []
+    monkeypatch.setattr(sender._pool, "submit", lambda send, claim: sent.append(claim))  # claimed, not yet attempted
+    try:
+        assert sender.send_due() == 1
+        with session_scope() as session:
+            session.execute(delete(Job))
+            assert session.scalar(select(func.count()).select_from(WebhookDelivery)) == 0
+        with caplog.at_level("INFO", logger="voxe.webhooks"):
+            sender._send(sent[0])
+    finally:
+        sender.stop()
+        reset_service_caches()
+    assert caplog.records == []
+    assert not sender._in_flight.by_origin and not sender._in_flight.by_key  # (counted out again)
+
+
 def test_a_claims_work_does_not_grow_with_a_dead_receivers_backlog(tmp_path, monkeypatch):
     """A claim ranked every due delivery, each poll (twice a second): with 100,000 due to a dead receiver it took a
     quarter of a second on SQLite, a tenth on PostgreSQL, where it had taken 2 ms. It reads each receiver's earliest
