@@ -1513,6 +1513,28 @@ def test_an_artifact_with_a_long_name_downloads_through_a_part_file_of_a_name_th
         (tmp_path / name).unlink()
 
 
+def test_a_download_to_a_name_longer_than_a_file_name_is_refused_before_any_byte_is_fetched(tmp_path, monkeypatch):
+    """The part file's name is cut to fit 255 bytes, the target's is not: where ``Path.is_dir`` says False for a name
+    too long (Python 3.14's, which raises nothing) the whole artifact was fetched, then its rename refused "File name
+    too long" naming the part, which stayed for the next run to fail the same way. It is refused before any request,
+    naming the target and the limit; nothing is left."""
+    import errno
+    import os
+    import pathlib
+
+    monkeypatch.setattr(pathlib.Path, "is_dir", lambda self, **kwargs: os.path.isdir(self))  # as Python 3.14's
+    data = b"frame" * 100
+    for name in ("n" * 252 + ".bin", "é" * 126 + ".bin"):  # 256 bytes each (in UTF-8)
+        answer = _serving(data, name)
+        with Client(transport=httpx.MockTransport(answer)) as client:
+            with pytest.raises(OSError, match=rf"^\[Errno 36\] cannot download {name} of job j1 to {tmp_path / name}: "
+                                              "its name is 256 bytes, more than the 255 of a file name; nothing "
+                                              "downloaded$") as refused:
+                client.download("j1", name, tmp_path / name)
+            assert refused.value.errno == errno.ENAMETOOLONG
+        assert answer.asked == [] and list(tmp_path.iterdir()) == []
+
+
 def test_a_download_to_a_folder_is_refused_before_any_byte_is_fetched(tmp_path, monkeypatch, capsys):
     """``voxe download J --out DIR`` where DIR/a.png is a folder had fetched the whole artifact, then failed its rename
     with "[Errno 21] Is a directory: '.../.a.png.<etag>.part' -> '.../a.png'", the hidden part file left in DIR."""

@@ -26,7 +26,7 @@ from urllib.parse import quote
 import httpx
 
 from voxe_core.constants import TEXTURE_SUFFIXES
-from voxe_core.files import head_that_fits, take_the_mode_of
+from voxe_core.files import NAME_MAX, head_that_fits, take_the_mode_of
 from voxe_core.ply_header import read_ply_header
 
 DEFAULT_URL = "http://127.0.0.1:8000"
@@ -566,6 +566,11 @@ class Client:
         """
         if name in ("", ".", "..") or any(c in name for c in "/\\\0"):  # it names a file inside dest's folder only
             raise ServiceError(f"artifact name {name!r} of job {job_id} is not a plain file name; nothing written")
+        if len(os.fsencode(Path(dest).name)) > NAME_MAX:  # (Python 3.14's is_dir says False for it, raising nothing:
+            # the whole artifact had been fetched into a part file cut to fit, then its rename refused, run after run)
+            raise OSError(errno.ENAMETOOLONG, f"cannot download {name} of job {job_id} to {dest}: its name is "
+                                              f"{len(os.fsencode(Path(dest).name))} bytes, more than the {NAME_MAX} "
+                                              "of a file name; nothing downloaded")
         if Path(dest).is_dir():  # (the whole artifact had been fetched, then its rename failed naming the part file)
             raise IsADirectoryError(f"cannot download {name} of job {job_id} to {dest}: it is a folder; nothing "
                                     "downloaded")
