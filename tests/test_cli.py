@@ -473,6 +473,36 @@ def test_wait_on_a_job_deleted_while_its_stream_was_lost_says_it_was_deleted(mon
         "(GET /v1/jobs/j1/events: HTTP 404: job 'j1' not found)")
 
 
+def test_wait_on_a_terminal_ends_the_bars_row_before_its_error(monkeypatch, capsys):
+    """On a terminal, ``voxe wait``'s error was written on the progress bar's row, after it: "[#####...] 50.0%
+    running editvoxe wait: error: ...". The row is ended first; an error before any bar is drawn (a wrong id) has
+    no empty line before it."""
+    import httpx
+
+    import voxe_core.cli.service as service
+    from voxe_client import Client
+
+    monkeypatch.setattr(sys.stderr, "isatty", lambda: True)
+    monkeypatch.setattr(shutil, "get_terminal_size", lambda *args: os.terminal_size((100, 24)))
+    running = b'event: progress\ndata: {"state": "running", "stage": "edit", "overall_progress": 0.5}\n\n'
+
+    def answer(request: httpx.Request) -> httpx.Response:
+        if request.url.path == "/v1/jobs/nope/events":
+            return httpx.Response(404, json={"detail": "job 'nope' not found"})
+        if request.url.path.endswith("/events"):
+            return httpx.Response(200, headers={"content-type": "text/event-stream"},
+                                  content=running + b'event: error\ndata: {"detail": "job \'j1\' was deleted"}\n\n')
+        return httpx.Response(404, json={"detail": "job 'j1' not found"})
+
+    monkeypatch.setattr(service, "_client", lambda args: Client(transport=httpx.MockTransport(answer)))
+    assert main(["wait", "j1"]) == 2
+    assert capsys.readouterr().err == (
+        "\r[###############               ]  50.0% running edit\n"
+        "voxe wait: error: event stream of job j1 ended: job 'j1' was deleted\n")
+    assert main(["wait", "nope"]) == 2
+    assert capsys.readouterr().err == "voxe wait: error: GET /v1/jobs/nope/events: HTTP 404: job 'nope' not found\n"
+
+
 def test_wait_says_when_it_reconnects_and_when_the_stream_is_back(monkeypatch, capsys):
     """While ``voxe wait`` rode out an outage its progress line froze with nothing said, as if the job had hung."""
     import httpx

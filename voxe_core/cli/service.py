@@ -199,17 +199,26 @@ def _follow(client, job_id: str, args) -> int:
             text = "\r" + text.ljust(shutil.get_terminal_size().columns - 1)
         print(text, file=sys.stderr, flush=True)
 
+    draw, drawn = _progress_bar(args.quiet), [False]
+
+    def on_progress(snapshot: dict) -> None:
+        draw(snapshot)
+        drawn[0] = True  # (over the bar: the first snapshot is always drawn)
+
     try:
-        job = client.wait(job_id, on_progress=_progress_bar(args.quiet), reconnect_for=args.reconnect_for,
-                          on_reconnect=say_aside,
+        job = client.wait(job_id, on_progress=on_progress, reconnect_for=args.reconnect_for, on_reconnect=say_aside,
                           on_warning=lambda event: say_aside(f"{event.get('stage')}: {event.get('detail')}"))
-    except EventStreamLost as exc:
-        raise EventStreamLost(f"{exc}: `voxe wait {job_id}` follows it again (--reconnect-for SECONDS rides out "
-                              "a longer outage)") from None
     except KeyboardInterrupt:  # ("voxe: interrupted" had read as if the job were stopped too)
         print(f"\nvoxe {args.command}: stopped following; the job {job_id} goes on in the service (`voxe cancel "
               f"{job_id}` stops it)", file=sys.stderr)
         return EXIT_INTERRUPTED
+    except Exception as exc:
+        if over_the_bar and drawn[0]:  # ends the bar's row: the error had been written on it, after the bar
+            print(file=sys.stderr)
+        if isinstance(exc, EventStreamLost):
+            raise EventStreamLost(f"{exc}: `voxe wait {job_id}` follows it again (--reconnect-for SECONDS rides "
+                                  "out a longer outage)") from None
+        raise
     if over_the_bar:  # ends the bar redrawn in place; a log's lines end themselves
         print(file=sys.stderr)
     print(json.dumps(job, indent=2))
