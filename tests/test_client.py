@@ -98,6 +98,25 @@ def test_a_url_without_http_or_a_host_is_bad_input_not_a_service_not_reached(cap
     Client("https://svc.test:8443/voxe/").close()
 
 
+def test_a_redirect_answered_says_where_it_points_not_that_it_may_not_be_the_service(capsys):
+    """An http:// --api that a proxy redirects to https:// had been "answered 301 with no content type, not the API's
+    JSON (is it the Vox-E service?)", the redirect's target unsaid (the client follows none); one with a JSON body
+    "answered {...}, not a job". Each call, the event stream's opening too, says where it points."""
+    def answer(request: httpx.Request) -> httpx.Response:
+        body = {"json": {"detail": "moved"}} if request.url.path == "/v1/jobs" else {}
+        return httpx.Response(308 if body else 301, headers={"location": f"https://svc.test{request.url.path}"}, **body)
+
+    with Client(transport=httpx.MockTransport(answer)) as client:
+        for call, method, path, status in ((lambda: client.get_job("j1"), "GET", "/v1/jobs/j1", 301),
+                                           (lambda: list(client.events("j1")), "GET", "/v1/jobs/j1/events", 301),
+                                           (lambda: client.create_job("s1", "a mic"), "POST", "/v1/jobs", 308)):
+            with pytest.raises(ServiceError) as raised:
+                call()
+            assert str(raised.value) == (
+                f"{method} {path}: http://127.0.0.1:8000 answered {status}, a redirect to 'https://svc.test{path}', "
+                "which this client does not follow: give it the URL the service answers at (voxe: --api)")
+
+
 def test_a_service_url_whose_port_is_past_65535_or_0_is_refused_not_another_ports_service_asked(capsys):
     """httpx takes any port number and the socket connects to it modulo 65536: ``--api http://127.0.0.1:99999`` had
     asked (with the API key) whatever listens on port 34463, and port 0 failed as a service not reached (exit 3, try

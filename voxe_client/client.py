@@ -250,9 +250,11 @@ class Client:
         _raise_for_error(response, method, path, keyed=idempotency_key is not None)
         if response.status_code == httpx.codes.NO_CONTENT:
             return None
+        if response.is_redirect:
+            raise _redirected(response, method, path, self.base_url)
         try:
             return response.json()
-        except ValueError:  # (a redirect page, a proxy's HTML): it had surfaced as "Expecting value"
+        except ValueError:  # (a proxy's HTML): it had surfaced as "Expecting value"
             raise ServiceError(f"{method} {path}: {self.base_url} answered {response.status_code} with "
                                f"{response.headers.get('content-type') or 'no content type'}, not the API's JSON "
                                "(is it the Vox-E service?)") from None
@@ -445,6 +447,8 @@ class Client:
                         lost = (f"{self.base_url} answered {response.status_code} with "
                                 f"{response.headers.get('content-type') or 'no content type'}, not an event stream")
                         if not opened:
+                            if response.is_redirect:
+                                raise _redirected(response, "GET", path, self.base_url)
                             raise ServiceError(f"GET {path}: {lost} (is it the Vox-E service?)")
                     else:
                         if reconnecting and on_reconnect is not None:
@@ -1191,6 +1195,15 @@ def _raise_for_error(response: httpx.Response, method: str, path: str, keyed: bo
                  f"{MAX_RETRY_WAIT_S:g} s)" if asked is not None and asked > MAX_RETRY_WAIT_S else "")
         raise ServiceError(f"{method} {path}: HTTP {response.status_code}: {_readable(detail)}{later}",
                            response.status_code, detail)
+
+
+def _redirected(response: httpx.Response, method: str, path: str, base_url: str) -> ServiceError:
+    """The error of a redirect answered where the API's JSON or event stream was asked for: where it points, which this
+    client does not follow. An http:// service URL that a proxy redirects to https:// had been "answered 301 with no
+    content type, not the API's JSON (is it the Vox-E service?)", the redirect's target unsaid."""
+    return ServiceError(f"{method} {path}: {base_url} answered {response.status_code}, a redirect to "
+                        f"{response.headers['location']!r}, which this client does not follow: give it the URL the "
+                        "service answers at (voxe: --api)")
 
 
 def _readable(detail) -> str:
