@@ -1218,6 +1218,31 @@ def test_a_stream_s_error_event_ends_it_saying_why(live, browser):
     faults(driver, {})
 
 
+def test_a_stream_refused_as_asked_is_not_asked_again(live, browser):
+    """A 422 to the stream request (its Last-Event-ID past the job's newest event, as after a database restore) ends
+    the stream, saying why: asked again with the same id, it had been refused every retry for as long as the page
+    stayed open."""
+    svc, token, _archive = live
+    driver = browser
+    answer = lambda body: {"status": 200, "type": "application/json", "body": body}  # noqa: E731
+    refused = {"status": 422, "type": "application/json",
+               "body": json.dumps({"detail": "Last-Event-ID 99 is past job 'restored''s newest event, 7"})}
+    set_key(driver, svc, token)
+    faults(driver, {"/v1/jobs/restored$": answer(json.dumps(running_job("restored"))),
+                    "/v1/jobs/restored/artifacts$": answer("[]"),
+                    "/v1/jobs/restored/events": {"once": True, **answer("[]")},
+                    "/v1/jobs/restored/events$": refused})
+    driver.execute_script("window.requests = []")
+    go(driver, "#/jobs/restored")
+    wait_until(lambda: "not reconnecting" in text(driver, '[data-error-for="stream"]'), 10, what="the stream's end")
+    assert text(driver, '[data-error-for="stream"]') == (
+        "event stream: 422: Last-Event-ID 99 is past job 'restored''s newest event, 7; not reconnecting "
+        "(reload the page to try again)")
+    time.sleep(5)  # two and a half retry intervals
+    assert len(streams(driver, "restored")) == 1
+    faults(driver, {})
+
+
 def test_the_api_s_values_are_shown_as_text_never_as_markup(live, browser):
     """Every value the API sends is shown as text: a job's mode, state and creation time had been spliced into the
     job list's HTML unescaped, and parsed as the elements and attributes they wrote."""

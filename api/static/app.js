@@ -717,8 +717,10 @@ async function showMedia(artifact, selector, signal) {
   el.dataset.sha = artifact.sha256;
 }
 
-/** Answers to the stream request that no reconnection changes: the key, or the job, is not (or no longer) valid. */
-const FINAL_STREAM_STATUS = new Set([...KEY_REFUSED, 404]);
+/** Answers to the stream request that no reconnection changes: the key, or the job, is not (or no longer) valid, or
+ * the request is refused as it stands (a 422: a Last-Event-ID past the job's newest event, after a database restore;
+ * asked again with it, it had been refused for as long as the page stayed open). */
+const FINAL_STREAM_STATUS = new Set([...KEY_REFUSED, 404, 422]);
 /** The longest wait for a word of the stream (the server sends a comment every 15 s when nothing happens): past it
  * the connection is taken for dead and opened again. A connection dropped unsaid (a laptop's sleep, a network change,
  * a proxy's timeout) had left the read waiting for ever, the page frozen at its last progress. */
