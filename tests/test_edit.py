@@ -173,6 +173,16 @@ def test_adams_betas_outside_zero_to_one_are_refused_by_name(betas):
     assert EditConfig(betas=(0.0, 0.5)).betas == (0.0, 0.5)
 
 
+@pytest.mark.parametrize("betas", [("0.9", "0.999"), None, 0.9, (False, 0.999), (0.9, None), "09"])
+def test_adams_betas_that_are_no_pair_of_numbers_are_refused_by_name(betas):
+    """Regression: a pair of strings, None or one number had been a TypeError naming no setting ("'<=' not supported
+    between instances of 'int' and 'str'", "object of type 'NoneType' has no len()"), and False had run as 0."""
+    with pytest.raises(ValueError, match=rf"^betas must be Adam's two decay rates, each in \[0, 1\), got "
+                                         rf"{re.escape(str(betas))}$"):
+        EditConfig(betas=betas)
+    assert EditConfig(betas=[0.5, 0.9]).betas == [0.5, 0.9]  # a list (JSON's pair) is one too
+
+
 @pytest.mark.parametrize("name", ["iterations", "render_size", "batch_size", "image_regulariser_rays", "lr_decay_start",
                                   "lr_decay_every", "preview_every", "checkpoint_every", "seed"])
 @pytest.mark.parametrize("value", [2.5, math.nan, True, "8"])

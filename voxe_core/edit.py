@@ -112,6 +112,7 @@ from voxe_core.tensorio import (
     check_flags,
     check_numbers,
     config_recipe,
+    is_number,
     load_header,
     load_tensors,
     recipe_changes,
@@ -209,8 +210,10 @@ class EditConfig:
             if not 0 < getattr(self, name) <= FLOAT32_MAX:
                 raise ValueError(f"{name} must be positive and finite in float32, got {getattr(self, name)}")
         # As "not in range" (NaN fails every comparison): torch's Adam had refused them only as the edit started,
-        # naming no setting ("Invalid beta parameter at index 0").
-        if len(self.betas) != 2 or not all(0 <= beta < 1 for beta in self.betas):
+        # naming no setting ("Invalid beta parameter at index 0"); a pair of strings, None or one number had been a
+        # TypeError naming none either ("'<=' not supported between instances of 'int' and 'str'").
+        if (not isinstance(self.betas, (tuple, list)) or len(self.betas) != 2
+                or not all(is_number(beta) and 0 <= beta < 1 for beta in self.betas)):
             raise ValueError(f"betas must be Adam's two decay rates, each in [0, 1), got {self.betas}")
         for name in ("front_azimuth_deg", "preview_elevation_deg"):
             check_angle(name, getattr(self, name))
