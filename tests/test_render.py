@@ -540,6 +540,21 @@ def test_a_field_of_view_too_narrow_for_a_float32_focal_is_refused_naming_it(fov
     assert torch.allclose(camera_rays(narrow, 0)[1], torch.tensor([0.0, 0.0, -1.0]).expand(16, 3))
 
 
+@pytest.mark.parametrize("fov_x", [5e-324, 1e-40, 5e-37])
+def test_the_stages_configs_refuse_a_field_of_view_too_narrow_for_their_renders_as_they_are_made(fov_x):
+    """Regression: EditConfig(fov_x=1e-40) and RefineConfig's had been taken, and refused only at the first render
+    (after the guidance had loaded), by the cameras. The focal is their render size's: 5e-37's fits 8 pixels, not 266."""
+    from voxe_core.edit import EditConfig
+    from voxe_core.refine.config import RefineConfig
+
+    for make in (EditConfig, RefineConfig):
+        with pytest.raises(ValueError, match=re.escape(f"fov_x {fov_x} radians is too narrow: its focal length "
+                                                       "across 266 pixels")):
+            make(fov_x=fov_x)
+    assert EditConfig(fov_x=5e-37, render_size=8).fov_x == RefineConfig(fov_x=5e-37, render_size=8).fov_x == 5e-37
+    assert float(Cameras.from_fov(torch.eye(4), 5e-37, 8, 8).fx[0]) == pytest.approx(1.6e37, rel=1e-6)
+
+
 @pytest.mark.parametrize("distance", [1e-40, 1e-30, 1.0, 2e19, 1e30, 1e38])
 @pytest.mark.parametrize("direction", [(1.0, 1.0, 1.0), (0.0, 0.0, 1.0), (0.0, 0.0, -1.0), (1e-7, 0.0, 1.0)])
 def test_look_at_aims_a_rotation_at_its_target_from_any_distance(distance, direction):

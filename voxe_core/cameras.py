@@ -16,7 +16,7 @@ from dataclasses import dataclass, replace
 
 import torch
 
-from voxe_core.constants import NERF_SYNTHETIC_RADIUS
+from voxe_core.constants import FLOAT32_MAX, NERF_SYNTHETIC_RADIUS
 
 
 DISTORTION_MODELS = ("opencv", "fisheye")
@@ -79,18 +79,11 @@ class Cameras:
     @staticmethod
     def from_fov(c2w: torch.Tensor, fov_x: float, width: int, height: int) -> "Cameras":
         """NeRF-synthetic intrinsics: focal = 0.5 W / tan(0.5 fov_x), centred principal point."""
-        check_fov_x(fov_x)
+        focal = check_fov_x(fov_x, width)
         c2w = torch.as_tensor(c2w, dtype=torch.float32)
         if c2w.dim() == 2:
             c2w = c2w[None]
         n = c2w.shape[0]
-        # A vanishing angle's focal overflows float32 (1e-40 had failed in torch.full, "value cannot be converted
-        # to type float without overflow") or divides by a tangent of 0 (5e-324: a ZeroDivisionError).
-        half_width = math.tan(0.5 * fov_x)
-        focal = 0.5 * width / half_width if half_width > 0 else math.inf
-        if not focal <= torch.finfo(torch.float32).max:
-            raise ValueError(f"fov_x {fov_x} radians is too narrow: its focal length across {width} pixels, "
-                             f"{focal:.3g}, is beyond float32's range (3.4e38)")
         full = lambda v: torch.full((n,), float(v))  # noqa: E731
         return Cameras(c2w, full(focal), full(focal), full(width / 2), full(height / 2), width, height)
 
@@ -123,11 +116,23 @@ def check_angle(name: str, degrees: float) -> None:
         raise ValueError(f"{name} must be a finite angle in degrees, got {degrees}")
 
 
-def check_fov_x(fov_x: float) -> None:
+def check_fov_x(fov_x: float, width: int | None = None) -> float | None:
     """ValueError unless ``fov_x`` is a horizontal field of view in (0, π) radians: at 0 the focal is infinite, at π
-    zero, and past π negative (a mirrored camera)."""
+    zero, and past π negative (a mirrored camera). Given the image's ``width`` in pixels, also unless its focal length
+    there fits float32, which it returns (the stages' configs check their render size's, so such an angle is refused
+    as they are made, not at their first render)."""
     if not 0 < fov_x < math.pi:  # as "not in range": NaN fails every comparison
         raise ValueError(f"fov_x must be in (0, pi) radians, got {fov_x}")
+    if width is None:
+        return None
+    # A vanishing angle's focal overflows float32 (1e-40 had failed in torch.full, "value cannot be converted
+    # to type float without overflow") or divides by a tangent of 0 (5e-324: a ZeroDivisionError).
+    half_width = math.tan(0.5 * fov_x)
+    focal = 0.5 * width / half_width if half_width > 0 else math.inf
+    if not focal <= FLOAT32_MAX:
+        raise ValueError(f"fov_x {fov_x} radians is too narrow: its focal length across {width} pixels, "
+                         f"{focal:.3g}, is beyond float32's range (3.4e38)")
+    return focal
 
 
 def check_views(images: torch.Tensor, cameras: Cameras, what: str = "images") -> None:

@@ -240,7 +240,7 @@ class EditConfig:
         if not 0.0 <= self.min_zenith_deg <= self.max_zenith_deg <= 180.0:  # (NaN too; had named neither field)
             raise ValueError(f"need 0 <= min_zenith_deg <= max_zenith_deg <= 180 (degrees from straight above), got "
                              f"min_zenith_deg={self.min_zenith_deg}, max_zenith_deg={self.max_zenith_deg}")
-        check_fov_x(self.fov_x)
+        check_fov_x(self.fov_x, self.render_size)
         # A value of another type had been taken and failed mid-edit naming no setting (schedule="authors", the CLI's
         # word for TimestepSchedule.authors(): "'str' object has no attribute 'sample'" after the first preview), or
         # run the opposite of what was asked (view_words="false", a true string).

@@ -219,7 +219,7 @@ class RefineConfig:
                              "RenderConfig(..., background=(0.0,))")
         if not 0.0 < self.node_alpha < 1.0:
             raise ValueError(f"node_alpha must lie in (0, 1), got {self.node_alpha}")
-        check_fov_x(self.fov_x)
+        check_fov_x(self.fov_x, self.render_size)
         check_angle("front_azimuth_deg", self.front_azimuth_deg)
         if not 0 <= self.seed <= MAX_SEED:  # (-1 had run every attention pass, then failed in the cut's numpy draw)
             raise ValueError(f"seed must lie in [0, {MAX_SEED}] (the service's and the CLI's range), got {self.seed}")
