@@ -362,6 +362,24 @@ def test_renders_under_8_px_are_refused_before_any_work(tmp_path, make_sphere_gr
     assert f"render_size must be at least 8 px, got {size}" in capsys.readouterr().err and not out.exists()
 
 
+@pytest.mark.parametrize("name, value, message", [
+    ("render_size", 1025, "render_size must be at most 1024 px (the service's and the CLI's limit), got 1025"),
+    ("render_size", 50000, "render_size must be at most 1024 px (the service's and the CLI's limit), got 50000"),
+    ("views", 1001, "views must be at most 1000 (the service's and the CLI's limit), got 1001"),
+])
+def test_the_stages_configs_refuse_renders_and_views_past_the_services_limits(name, value, message):
+    """Regression: the configs had no upper bound where the CLI and the API stop (1024 px, 1000 views):
+    EditConfig(render_size=50000) or RefineConfig(views=100000) were taken, to exhaust the memory (2.5e9 rays a
+    render) or render and attend every view. The limits themselves pass."""
+    from voxe_core.edit import EditConfig
+
+    makers = (RefineConfig, EditConfig) if name == "render_size" else (RefineConfig,)
+    for make in makers:
+        with pytest.raises(ValueError, match=f"^{re.escape(message)}$"):
+            make(**{name: value})
+        assert getattr(make(**{name: 1024 if name == "render_size" else 1000}), name) in (1024, 1000)
+
+
 def test_max_over_edit_tokens_is_the_max_of_the_per_token_maps():
     maps = torch.rand(77, 6, 6, generator=torch.Generator().manual_seed(1))
     edit, _ = combine_token_maps(maps, [3, 7, 9], [1], reduce=RefineConfig().edit_token_reduce)

@@ -16,7 +16,7 @@ from dataclasses import dataclass, replace
 
 import torch
 
-from voxe_core.constants import FLOAT32_MAX, NERF_SYNTHETIC_RADIUS
+from voxe_core.constants import FLOAT32_MAX, MAX_RENDER_SIZE, MIN_RENDER_SIZE, NERF_SYNTHETIC_RADIUS
 
 
 DISTORTION_MODELS = ("opencv", "fisheye")
@@ -133,6 +133,18 @@ def check_fov_x(fov_x: float, width: int | None = None) -> float | None:
         raise ValueError(f"fov_x {fov_x} radians is too narrow: its focal length across {width} pixels, "
                          f"{focal:.3g}, is beyond float32's range (3.4e38)")
     return focal
+
+
+def check_render_size(render_size: int) -> None:
+    """ValueError naming ``render_size`` unless it lies in [MIN_RENDER_SIZE, MAX_RENDER_SIZE] pixels, the bounds of the
+    edit's and the refinement's renders (the service's and the CLI's too). Above, nothing is gained (the guidance
+    and the attention maps work at 768 px at most) and memory runs out: a 50,000 px side, 2.5e9 rays a render, had
+    been taken as the config was made, to fail only at the first render."""
+    if render_size < MIN_RENDER_SIZE:
+        raise ValueError(f"render_size must be at least {MIN_RENDER_SIZE} px, got {render_size}")
+    if render_size > MAX_RENDER_SIZE:
+        raise ValueError(f"render_size must be at most {MAX_RENDER_SIZE} px (the service's and the CLI's limit), got "
+                         f"{render_size}")
 
 
 def check_views(images: torch.Tensor, cameras: Cameras, what: str = "images") -> None:

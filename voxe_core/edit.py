@@ -63,6 +63,7 @@ from voxe_core.cameras import (
     Cameras,
     camera_rays,
     check_angle,
+    check_render_size,
     check_fov_x,
     check_views,
     pixel_rays,
@@ -77,7 +78,6 @@ from voxe_core.constants import (
     EDIT_LR,
     FLOAT32_MAX,
     MAX_SEED,
-    MIN_RENDER_SIZE,
     NERF_SYNTHETIC_FOV_X,
     NERF_SYNTHETIC_RADIUS,
     RENDER_SIZE,
@@ -217,8 +217,7 @@ class EditConfig:
             raise ValueError(f"betas must be Adam's two decay rates, each in [0, 1), got {self.betas}")
         for name in ("front_azimuth_deg", "preview_elevation_deg"):
             check_angle(name, getattr(self, name))
-        if self.render_size < MIN_RENDER_SIZE:
-            raise ValueError(f"render_size must be at least {MIN_RENDER_SIZE} px, got {self.render_size}")
+        check_render_size(self.render_size)
         if self.regulariser not in REGULARISERS:
             raise ValueError(f"unknown regulariser {self.regulariser!r}; expected one of {', '.join(REGULARISERS)}")
         # As "not in range" (NaN fails every comparison), in the float32 they scale the losses in: 1e39 had been inf

@@ -7,7 +7,7 @@ import numbers
 from dataclasses import dataclass, field
 from typing import Literal
 
-from voxe_core.cameras import check_angle, check_fov_x
+from voxe_core.cameras import check_angle, check_fov_x, check_render_size
 from voxe_core.constants import (
     ATTENTION_MODEL_ID,
     CUT_SIGMA,
@@ -16,8 +16,8 @@ from voxe_core.constants import (
     DIFFUSION_TIMESTEPS,
     EDIT_SEEDS,
     FLOAT32_MAX,
+    MAX_REFINE_VIEWS,
     MAX_SEED,
-    MIN_RENDER_SIZE,
     NERF_SYNTHETIC_FOV_X,
     OBJECT_SEEDS,
     REFINE_BACKPROJECTION_STRIDE,
@@ -171,8 +171,10 @@ class RefineConfig:
         if not 0 <= self.timestep < DIFFUSION_TIMESTEPS:  # (the model had refused it, after the first view's render)
             raise ValueError(f"timestep must lie in [0, {DIFFUSION_TIMESTEPS - 1}] (a step of the diffusion model's "
                              f"noise schedule; the default: {DEFAULT_ATTENTION_TIMESTEP}), got {self.timestep}")
-        if self.render_size < MIN_RENDER_SIZE:
-            raise ValueError(f"render_size must be at least {MIN_RENDER_SIZE} px, got {self.render_size}")
+        check_render_size(self.render_size)
+        if self.views > MAX_REFINE_VIEWS:  # (as for render_size: views=100000 had gone on to render and attend each)
+            raise ValueError(f"views must be at most {MAX_REFINE_VIEWS} (the service's and the CLI's limit), got "
+                             f"{self.views}")
         for name in ("views", "rays_per_step", "backprojection_stride"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be at least 1, got {getattr(self, name)}")
