@@ -917,6 +917,19 @@ def test_errors_empty_prompt_and_image_regulariser_without_views(small_sphere):
             edit(small_sphere, "a dog", FakeGuidance(), EditConfig(iterations=1, render_size=16, regulariser=kind))
 
 
+@pytest.mark.parametrize("kind", ["reg3d", "reg3d_plus", "volumetric_l1", "volumetric_l2"])
+def test_input_views_under_a_volumetric_regulariser_are_refused_naming_them(small_sphere, kind):
+    """Regression: they had been taken and ignored (the edit ran as without them), where a caller passing them meant
+    the edit to keep to the images; voxe edit refuses --data there."""
+    cameras = Cameras.from_fov(spherical_poses(torch.tensor([30.0]), torch.tensor([0.0])), 0.6911, 8, 8)
+    reports = []
+    with pytest.raises(ValueError, match=rf"^input_views are read by the image_l1 / image_l2 regularisers only; the "
+                                         rf"'{kind}' regulariser compares G_e with G_i"):
+        edit(small_sphere, "a dog", FakeGuidance(), EditConfig(iterations=1, render_size=16, regulariser=kind),
+             _collect(reports), input_views=(torch.ones(1, 8, 8, 3), cameras))
+    assert reports == []
+
+
 def test_reg3d_is_zero_for_identical_grids_then_grows(small_sphere):
     reports = []
     edit(small_sphere, "a dog", FakeGuidance(), EditConfig(iterations=4, render_size=16), _collect(reports))

@@ -513,7 +513,7 @@ def edit(
     """Optimise G_e (a copy of ``initial_grid``) towards ``prompt`` under ``guidance``; returns G_e.
 
     ``input_views`` ``(images (N, H, W, 3) RGB in [0, 1] on white, cameras)`` are needed by the
-    image-space regularisers only. ``on_preview(iteration, image (H, W, 3) CPU)``
+    image-space regularisers, and refused under the others (which would ignore them). ``on_preview(iteration, image (H, W, 3) CPU)``
     receives a render from a fixed front pose at iteration 0 (fresh runs),
     every ``preview_every`` iterations and at the end; previews draw no random
     numbers, so they never change the result. ``callbacks`` gets a
@@ -557,6 +557,10 @@ def edit(
             f"the {config.regulariser!r} regulariser compares renders with the input views: pass "
             "input_views=(images, cameras), or use a volumetric regulariser such as 'reg3d'"
         )
+    if not image_reg and input_views is not None:  # (as voxe edit refuses --data there: they had been ignored)
+        raise ValueError(f"input_views are read by the {' / '.join(IMAGE_REGULARISERS)} regularisers only; the "
+                         f"{config.regulariser!r} regulariser compares G_e with G_i, not with images: leave them out, "
+                         "or choose an image regulariser")
     # Its NaN had made the first step's loss NaN: an EditDiverged blaming half precision or the lr, after a UNet pass.
     check_finite_grid(initial_grid, "its renders and the regulariser")
     centre = initial_grid.orbit_centre()  # G_i's, so a resumed run draws the same poses
