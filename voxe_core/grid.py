@@ -85,15 +85,19 @@ class _WeightedGather(torch.autograd.Function):
     def forward(ctx, table: torch.Tensor, index: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
         ctx.save_for_backward(index, weights, table if ctx.needs_input_grad[2] else None)
         ctx.table_shape, ctx.table_dtype = table.shape, table.dtype
-        return _weigh_corners(weights, F.embedding(index, table))
+        return _weigh_corners(weights, F.embedding(index, table).to(weights.dtype))
 
     @staticmethod
     def backward(ctx, grad: torch.Tensor):
         index, weights, table = ctx.saved_tensors
         grad_table = grad_weights = None
         if ctx.needs_input_grad[0]:
-            rows = (weights[..., None] * grad[:, None, :]).to(ctx.table_dtype).reshape(-1, ctx.table_shape[-1])
-            grad_table = grad.new_zeros(ctx.table_shape, dtype=ctx.table_dtype).index_add_(0, index.reshape(-1), rows)
+            # Summed in float32 at least, then rounded once: a half table's vertices, each the sum of many samples'
+            # shares, had been added up in its own precision.
+            wide = torch.promote_types(ctx.table_dtype, torch.float32)
+            rows = (weights[..., None] * grad[:, None, :]).to(wide).reshape(-1, ctx.table_shape[-1])
+            grad_table = grad.new_zeros(ctx.table_shape, dtype=wide).index_add_(0, index.reshape(-1), rows)
+            grad_table = grad_table.to(ctx.table_dtype)
         if ctx.needs_input_grad[2]:
             values = F.embedding(index, table).to(weights.dtype)
             grad_weights = torch.bmm(values, grad.to(weights.dtype).unsqueeze(-1)).squeeze(-1)
@@ -365,7 +369,7 @@ class VoxelGrid(torch.nn.Module):
     def interpolate(
         self, points: torch.Tensor, features: torch.Tensor | None = None, sparse_grad: bool = False
     ) -> torch.Tensor:
-        """Raw trilinear interpolation at world points (N, 3) -> (N, C).
+        """Raw trilinear interpolation at world points (N, 3) -> (N, C), in float32 for half-precision features.
 
         ``features`` (X, Y, Z, C) defaults to this grid's; attention grids pass
         their own scalar features over the same lattice. Points outside the box
@@ -379,10 +383,12 @@ class VoxelGrid(torch.nn.Module):
             raise ValueError(f"features must be (X, Y, Z, C) on this grid's {self._resolution} vertices, got "
                              f"{tuple(features.shape)}")
         feats = self.features if features is None else features
-        flat_index, weights = self.trilinear_corners(points, feats.dtype)
+        # Half-precision features are weighed in float32 (their weights too), as the renderer computes: bf16's 8-bit
+        # weights had stepped the field between vertices, 0.018 off the float32 interpolation of the same features.
+        flat_index, weights = self.trilinear_corners(points, torch.promote_types(feats.dtype, torch.float32))
         table = self.flat_features if features is None else feats.reshape(-1, feats.shape[-1])
         if sparse_grad and features is None:
-            return _weigh_corners(weights, F.embedding(flat_index, table, sparse=True))
+            return _weigh_corners(weights, F.embedding(flat_index, table, sparse=True).to(weights.dtype))
         return _WeightedGather.apply(table, flat_index, weights)
 
     def trilinear_corners(self, points: torch.Tensor, dtype: torch.dtype = torch.float32) -> tuple[torch.Tensor, torch.Tensor]:
