@@ -27,7 +27,7 @@ import torch
 from voxe_core.cameras import Cameras, camera_rays
 from voxe_core.constants import RENDER_CHUNK_RAYS
 from voxe_core.devices import full_precision
-from voxe_core.grid import DEFAULT_SIGMA_THRESHOLD, Occupancy, VoxelGrid, unit_directions
+from voxe_core.grid import DEFAULT_SIGMA_THRESHOLD, Occupancy, VoxelGrid, ray_box_intersection, unit_directions
 from voxe_core.volrend import RaySamples, optical_depth, transmittance
 
 Field = Callable[[torch.Tensor], tuple[torch.Tensor, torch.Tensor]]
@@ -151,6 +151,9 @@ def render_rays(
     grid's density (the 3D attention grids use it). ``sparse_grad``: see
     ``VoxelGrid.interpolate``.
 
+    A ReLU field's rays that start farther than its box's diagonal from it are first moved along themselves to it in
+    float64 (:func:`_moved_to_the_box`), so a far origin's float32 rounding does not become the samples'.
+
     Always computes in float32, autocast disabled: cumulative optical depths
     and transmittance products lose too much in bf16/fp16, and mixed dtypes
     would break the scatters. Under autocast the result is the fp32 render.
@@ -168,6 +171,7 @@ def render_rays(
                          f"{tuple(origins.shape)} and {tuple(directions.shape)}")
     with full_precision(origins):
         origins, directions = origins.float(), unit_directions(directions.float())
+        origins, shift = _moved_to_the_box(grid, origins, directions)
         device, n_rays = origins.device, origins.shape[0]
         if config.skip_empty and occupancy is None:
             occupancy = grid.occupancy(config.sigma_threshold)
@@ -189,10 +193,32 @@ def render_rays(
             lattice = grid.ray_lattice(origins, directions, offsets, config.step_ratio, occupancy)
             colour, opacity, depth, samples = march(grid, origins, directions, lattice, occupancy, config.early_stop)
             candidates = lattice.candidates().sum()
-            return _on_background(colour, opacity, depth, background, samples, candidates)
-        samples = grid.ray_samples(origins, directions, offsets, config.step_ratio, occupancy,
-                                   config.pass_samples(device), config.early_stop)
-        return composite(samples, grid_field(grid, color_features, sparse_grad), n_rays, background)
+            out = _on_background(colour, opacity, depth, background, samples, candidates)
+        else:
+            samples = grid.ray_samples(origins, directions, offsets, config.step_ratio, occupancy,
+                                       config.pass_samples(device), config.early_stop)
+            out = composite(samples, grid_field(grid, color_features, sparse_grad), n_rays, background)
+        out.depth = torch.where(out.opacity > 1e-6, out.depth + shift, out.depth)  # from the rays' own origins
+        return out
+
+
+def _moved_to_the_box(grid: VoxelGrid, origins: torch.Tensor,
+                      directions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(origins, shift (N,)): the rays of a lattice-sampled grid (the ReLU field) that start farther than its box's
+    diagonal from their entry, moved along themselves to it in float64 by ``shift`` (0 for the others, kept bit for
+    bit).
+
+    Such a grid samples only inside its box, so the move changes its samples by rounding alone, but in float32 a far
+    origin's rounding had become theirs: at 1e7 units (float32's spacing 1) the slab test's path through a 3-unit box
+    was ~2 units off, the points as far, the opacity 0.3 off, and at 3e7 rays through the box missed it."""
+    zero = torch.zeros(origins.shape[0], device=origins.device)
+    if not grid.lattice_sampled:  # a scene grid samples from the camera on (its near bins): left as they are
+        return origins, zero
+    wide = origins.double(), directions.double()
+    near, _ = ray_box_intersection(*wide, grid.bbox_min.double(), grid.bbox_max.double())
+    moved = near > grid.box_diagonal
+    shift = torch.where(moved, near, 0.0)
+    return torch.where(moved[:, None], (wide[0] + shift[:, None] * wide[1]).float(), origins), shift.float()
 
 
 def composite(groups: Iterable[RaySamples], values: Field, n_rays: int, background: torch.Tensor) -> RenderOutput:
