@@ -217,6 +217,22 @@ def test_a_setting_that_is_no_number_is_refused_naming_it(name, value):
     assert EditConfig(lr=np.float32(0.01), guidance_scale=np.float64(7.5), radius=4).radius == 4
 
 
+@pytest.mark.parametrize("name, value", [("lr", np.float32(0.01)), ("radius", np.float32(4.0)), ("seed", np.int64(3)),
+                                         ("render_size", np.int32(16)), ("guidance_scale", np.float64(7.5))])
+def test_numpy_numbers_the_config_takes_run_and_checkpoint_as_python_ones(small_sphere, tmp_path, name, value):
+    """Regression: EditConfig's checks take numpy numbers, but its recipe (in every run's checkpoint meta) had been
+    dumped as JSON as they were: edit() failed as it began, "Object of type float32 is not JSON serializable". The
+    recipe holds the Python number, so a resume with the same setting matches it; a numpy seed had failed seeding the
+    generators ("an integer is required")."""
+    config = EditConfig(**{"iterations": 1, "render_size": 16, name: value})
+    assert config.recipe()[name] == (int(value) if isinstance(value, np.integer) else float(value))
+    checkpoint = tmp_path / "edit.safetensors"
+    edit(small_sphere, "a dog", FakeGuidance(), config, checkpoint_path=checkpoint)
+    longer = dataclasses.replace(config, iterations=2)
+    edit(small_sphere, "a dog", FakeGuidance(), longer, checkpoint_path=checkpoint, resume_from=checkpoint)
+    assert load_edit_checkpoint(checkpoint)[1]["iteration"] == 2
+
+
 @pytest.mark.parametrize("name, value, message", [
     ("schedule", "authors", "schedule must be a TimestepSchedule, got 'authors'"),
     ("schedule", {"floor": 0.22}, "schedule must be a TimestepSchedule, got {'floor': 0.22}"),

@@ -600,12 +600,12 @@ def edit(
     views_record = (views_summary(torch.as_tensor(input_views[0]), input_views[1])
                     if image_reg and checkpoint_path else None)
 
-    host_gen = torch.Generator().manual_seed(config.seed)
-    device_gen = torch.Generator(device=device).manual_seed(config.seed + 1)
+    host_gen = torch.Generator().manual_seed(int(config.seed))  # (a numpy seed: "an integer is required")
+    device_gen = torch.Generator(device=device).manual_seed(int(config.seed) + 1)
     generators = {"host": host_gen, "device": device_gen}
     fingerprint = (resumed["initial_sha256"] if resumed is not None  # (check_resume found it G_i's)
                    else initial_fingerprint(initial_grid) if checkpoint_path else None)
-    run_meta = {"prompt": str(prompt), "seed": config.seed, "initial_sha256": fingerprint,
+    run_meta = {"prompt": str(prompt), "seed": int(config.seed), "initial_sha256": fingerprint,
                 "regulariser": config.regulariser, "model": model,
                 "recipe": config.recipe(), "device": device.type}  # the device generator's
 

@@ -36,7 +36,17 @@ def config_recipe(config, left_out: Iterable[str]) -> dict:
     fields = {**asdict(config), "render": config.render.recipe()}
     for name in left_out:
         del fields[name]
-    return json.loads(json.dumps(fields))
+    return json.loads(json.dumps(fields, default=_plain_number))
+
+
+def _plain_number(value):
+    """A numpy number as the Python one JSON writes (the configs take them: np.float32(0.01) as an lr had passed
+    EditConfig's checks and failed the edit as it began, "Object of type float32 is not JSON serializable")."""
+    if isinstance(value, numbers.Integral) and not isinstance(value, bool):
+        return int(value)
+    if isinstance(value, numbers.Real):
+        return float(value)
+    raise TypeError(f"Object of type {type(value).__name__} is not JSON serializable")
 
 
 def is_number(value) -> bool:
