@@ -547,6 +547,21 @@ def test_render_settings_that_render_blank_fail_deep_or_exhaust_memory_are_refus
         dataclasses.replace(RenderConfig(), **{name: value})
 
 
+@pytest.mark.parametrize("name, value", [
+    ("step_ratio", "0.5"), ("step_ratio", None), ("step_ratio", True), ("early_stop", "0"),
+    ("sigma_threshold", None), ("samples_per_pass", True), ("chunk_rays", False), ("background", None),
+    ("background", "white"), ("background", 1.0), ("skip_empty", "no"), ("fused", "false"),
+    ("skip_empty", 0),
+])
+def test_render_settings_of_another_type_are_refused_by_name(name, value):
+    """Regression: a string or None had been a TypeError naming no setting ("must be real number, not str", "'<='
+    not supported between instances of 'float' and 'str'", "'NoneType' object is not iterable"), skip_empty="no" and
+    fused="false" (true strings) had been taken and run as True, and True as a count or a step of 1."""
+    with pytest.raises(ValueError, match=rf"^RenderConfig\.{name} must be .*, got {re.escape(repr(value))}$"):
+        RenderConfig(**{name: value})
+    assert RenderConfig(background=[0.0, 0.0], skip_empty=False, samples_per_pass=4).skip_empty is False
+
+
 def test_the_render_settings_at_their_limits_render_the_slab():
     edge = RenderConfig(step_ratio=MIN_STEP_RATIO, samples_per_pass=1, chunk_rays=1, early_stop=0.0,
                         sigma_threshold=0.0)

@@ -28,6 +28,7 @@ from voxe_core.cameras import Cameras, camera_rays
 from voxe_core.constants import RENDER_CHUNK_RAYS
 from voxe_core.devices import full_precision
 from voxe_core.grid import DEFAULT_SIGMA_THRESHOLD, Occupancy, VoxelGrid, ray_box_intersection, unit_directions
+from voxe_core.tensorio import is_number
 from voxe_core.volrend import RaySamples, optical_depth, transmittance
 
 Field = Callable[[torch.Tensor], tuple[torch.Tensor, torch.Tensor]]
@@ -55,20 +56,28 @@ class RenderConfig:
 
     def __post_init__(self) -> None:
         """ValueError naming a setting that would render blank (a step of 0 or NaN placed no sample), divide by
-        zero deep in the sampler (``samples_per_pass`` 0) or take all the memory (a vanishing step)."""
+        zero deep in the sampler (``samples_per_pass`` 0) or take all the memory (a vanishing step). A value of
+        another type is refused so too: a string or None had been a TypeError naming no setting ("must be real
+        number, not str"), skip_empty="no" or fused="false" (true strings) had run as True, and True as a count 1."""
         def count(value) -> bool:
-            return isinstance(value, numbers.Integral) and value >= 1
+            return is_number(value) and isinstance(value, numbers.Integral) and value >= 1
+
+        def finite(value) -> bool:
+            return is_number(value) and math.isfinite(value)
 
         rules = [
-            ("step_ratio", math.isfinite(self.step_ratio) and self.step_ratio >= MIN_STEP_RATIO,
+            ("step_ratio", finite(self.step_ratio) and self.step_ratio >= MIN_STEP_RATIO,
              f"a finite number of voxels >= {MIN_STEP_RATIO} (MIN_STEP_RATIO)"),
             ("samples_per_pass", self.samples_per_pass is None or count(self.samples_per_pass),
              "an integer >= 1, or None for the device's default"),
             ("chunk_rays", count(self.chunk_rays), "an integer >= 1"),
-            ("early_stop", 0.0 <= self.early_stop < 1.0, "a transmittance in [0, 1)"),
-            ("sigma_threshold", math.isfinite(self.sigma_threshold) and self.sigma_threshold >= 0.0,
+            ("early_stop", is_number(self.early_stop) and 0.0 <= self.early_stop < 1.0, "a transmittance in [0, 1)"),
+            ("sigma_threshold", finite(self.sigma_threshold) and self.sigma_threshold >= 0.0,
              "a finite density >= 0"),
-            ("background", all(math.isfinite(b) for b in self.background), "finite"),
+            ("background", isinstance(self.background, (tuple, list)) and all(finite(b) for b in self.background),
+             "a tuple of finite values"),
+            ("skip_empty", isinstance(self.skip_empty, bool), "True or False"),
+            ("fused", isinstance(self.fused, bool), "True or False"),
         ]
         for name, ok, rule in rules:
             if not ok:
