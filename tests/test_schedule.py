@@ -95,3 +95,12 @@ def test_an_annealing_step_that_is_no_whole_number_is_refused_by_name(name, valu
     with pytest.raises(ValueError, match=rf"^{name} takes whole numbers \(iterations\), got {re.escape(repr(value))}$"):
         TimestepSchedule(**{name: value})
     assert TimestepSchedule(**{name: 600}).max_fraction(0) == 0.98
+
+
+@pytest.mark.parametrize("name, value", [("t_min", "0.02"), ("floor", None), ("factor", "0.75"), ("factor", True),
+                                         ("k0", True), ("t_min", False)])
+def test_an_annealing_fraction_that_is_no_number_is_refused_by_name(name, value):
+    """Regression: a string or None had been a TypeError naming no setting ("'<' not supported between instances of
+    'float' and 'str'"), and True or False had run as 1 or 0 (factor=True: no annealing at all)."""
+    with pytest.raises(ValueError, match=f"^{name} must be a number, got {re.escape(repr(value))}$"):
+        TimestepSchedule(**{name: value})

@@ -22,6 +22,8 @@ from dataclasses import dataclass
 
 import torch
 
+from voxe_core.tensorio import check_numbers
+
 PAPER_FLOOR = 0.35
 AUTHORS_FLOOR = 0.22
 
@@ -44,6 +46,8 @@ class TimestepSchedule:
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, numbers.Integral):
                 raise ValueError(f"{name} takes whole numbers (iterations), got {value!r}")
+        # (a string or None had been a TypeError from the comparisons below, naming no setting; True had run as 1)
+        check_numbers(self, ("k0", "t_min", "factor", "floor"))
         if not 0.0 <= self.t_min < self.floor <= self.k0 <= 1.0:
             raise ValueError(
                 f"need 0 <= t_min < floor <= k0 <= 1, got t_min={self.t_min}, floor={self.floor}, k0={self.k0}"
