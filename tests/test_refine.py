@@ -1397,6 +1397,19 @@ def test_refine_with_the_authors_fresh_fit_runs_one_diffusion_pass_per_step(tiny
     assert result.mask.shape == (10, 10, 10)
 
 
+def test_a_numpy_seed_refines_as_the_python_one(tiny_guidance, make_sphere_grid):
+    """Regression: RefineConfig takes numpy whole numbers, but torch's generators refuse them: seed=np.int64(3)
+    passed the config and failed the refinement at its first pose ("an integer is required")."""
+    initial = make_sphere_grid(10)
+    masks = []
+    for seed in (np.int64(3), 3):
+        config = RefineConfig(views=2, render_size=16, edit_seeds=5, object_seeds=5, seed=seed,
+                              **{**AUTHORS_CODE_FIT, "iterations": 2})
+        masks.append(refine(initial, initial.clone_grid(), "a dog wearing sunglasses", ["sunglasses"], tiny_guidance,
+                            config).mask)
+    assert torch.equal(*masks)
+
+
 # ----------------------------------------------------------------- end to end
 
 

@@ -284,7 +284,7 @@ def fit_attention_grids(
     active = flat_start[rows].clone().requires_grad_(True)
     optimizer = torch.optim.Adam([active], lr=config.lr, fused=active.is_cuda or None)  # one kernel per step on CUDA
     box = _occupied_slices(occupancy)
-    generator = torch.Generator(device=device).manual_seed(config.seed)
+    generator = torch.Generator(device=device).manual_seed(int(config.seed))
     n_rays = origins.shape[0]
     # "fresh" fits other maps than these: whether they differ is told step by step (a constant start's fixed maps
     # that never differ were refused above)

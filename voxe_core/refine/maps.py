@@ -76,7 +76,7 @@ def attention_cameras(config: RefineConfig, generator: torch.Generator | None = 
                       centre: torch.Tensor | None = None) -> Cameras:
     """``n`` (default ``config.views``) random upper-hemisphere cameras (SPEC §0) of ``render_size`` pixels, looking
     at ``centre`` (the grid's ``orbit_centre()``; None: the origin)."""
-    generator = generator or torch.Generator().manual_seed(config.seed)
+    generator = generator or torch.Generator().manual_seed(int(config.seed))
     c2w, _, _ = random_hemisphere_poses(config.views if n is None else n, generator, centre=centre)
     return Cameras.from_fov(c2w, config.fov_x, config.render_size, config.render_size)
 
@@ -169,7 +169,7 @@ def attention_maps_2d(
     groups = {text: token_groups(guidance, text, edit_words, config.object_tokens) for text in set(prompts)}
     device = grid.bbox_min.device
     occupancy = grid.occupancy(RenderConfig().sigma_threshold)
-    generator = generator or torch.Generator().manual_seed(config.seed)
+    generator = generator or torch.Generator().manual_seed(int(config.seed))
     size = (cameras.height, cameras.width)
     edit_maps = torch.empty(len(cameras), *size, device=device)
     object_maps = torch.empty_like(edit_maps)

@@ -77,8 +77,8 @@ def fresh_attention_views(guidance, grid: VoxelGrid, prompt: str, edit_words: Se
     Poses and diffusion noise come from generators of their own (``config.seed`` + 1 and + 2), so the steps see
     neither the start's poses nor its noise again, and the noise is not drawn from the poses' stream.
     """
-    poses = torch.Generator().manual_seed(config.seed + 1)
-    noise = torch.Generator().manual_seed(config.seed + 2)
+    poses = torch.Generator().manual_seed(int(config.seed) + 1)  # (torch refuses a numpy seed)
+    noise = torch.Generator().manual_seed(int(config.seed) + 2)
 
     def fresh_view(step: int):
         camera = attention_cameras(config, poses, n=1, centre=centre)
