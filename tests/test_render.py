@@ -410,19 +410,21 @@ def test_a_half_precision_grid_renders_as_the_float32_grid_of_its_values(dtype):
     assert torch.equal(half.flat_features.grad, exact.flat_features.grad.to(dtype))
 
 
-@pytest.mark.parametrize("distance", [1e5, 1e7, 3e7])
-def test_rays_from_far_away_render_the_box_they_pass_through(distance):
+@pytest.mark.parametrize("distance, dtype", [(1e5, torch.float32), (1e7, torch.float32), (3e7, torch.float32),
+                                             (1e9, torch.float64)])
+def test_rays_from_far_away_render_the_box_they_pass_through(distance, dtype):
     """Regression: in float32 a far origin's rounding had become the slab test's and the samples' (float32's spacing
     at 1e7 is 1 unit): the opacity through a uniform box was 0.31 off at 1e7 units (the path ~2 units off in 3) and
     rays through the box missed it at 3e7. Their origins are moved to the box in float64 first; the depth is still
-    the distance from the given origin, to float32 rounding."""
+    the distance from the given origin, to float32 rounding. float64 rays are moved before they are rounded: from
+    1e9 units their float32 origins are 64 units apart."""
     grid = VoxelGrid(16, init_density=0.01)
     sigma = float(grid.activate_density(torch.tensor(0.01)))
     g = torch.Generator().manual_seed(0)
     towards = torch.nn.functional.normalize(torch.randn(300, 3, generator=g, dtype=torch.float64), dim=-1)
     aside = (torch.rand(300, 3, generator=g, dtype=torch.float64) - 0.5) * 2.0
     aside -= (aside * towards).sum(-1, keepdim=True) * towards
-    origins, directions = (aside + towards * distance).float(), (-towards).float()
+    origins, directions = (aside + towards * distance).to(dtype), (-towards).to(dtype)
     out = render_rays(grid, origins, directions)
     near, far = ray_box_intersection(origins.double(), directions.double(), grid.bbox_min.double(),
                                      grid.bbox_max.double())
@@ -433,7 +435,7 @@ def test_rays_from_far_away_render_the_box_they_pass_through(distance):
     assert ((out.depth.double() - near)[crossing] / path[crossing]).min() >= -1e-6 * distance
     assert (out.depth.double() - far)[crossing].max() <= 1e-6 * distance  # within the box, seen from the origin
     closer = (origins.double() + (distance - 4.0) * directions.double()).float()  # the same lines, 4 units out
-    assert torch.allclose(render_rays(grid, closer, directions).rgb, out.rgb, rtol=0, atol=1e-5)
+    assert torch.allclose(render_rays(grid, closer, directions.float()).rgb, out.rgb, rtol=0, atol=1e-5)
 
 
 class Ops(TorchDispatchMode):

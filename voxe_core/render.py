@@ -179,8 +179,8 @@ def render_rays(
         raise ValueError(f"origins and directions must be (N, 3) each, one direction per origin, got "
                          f"{tuple(origins.shape)} and {tuple(directions.shape)}")
     with full_precision(origins):
+        origins, shift = _moved_to_the_box(grid, origins, directions)  # (before float32 rounds a far origin)
         origins, directions = origins.float(), unit_directions(directions.float())
-        origins, shift = _moved_to_the_box(grid, origins, directions)
         device, n_rays = origins.device, origins.shape[0]
         if config.skip_empty and occupancy is None:
             occupancy = grid.occupancy(config.sigma_threshold)
@@ -215,7 +215,7 @@ def _moved_to_the_box(grid: VoxelGrid, origins: torch.Tensor,
                       directions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """(origins, shift (N,)): the rays of a lattice-sampled grid (the ReLU field) that start farther than its box's
     diagonal from their entry, moved along themselves to it in float64 by ``shift`` (0 for the others, kept bit for
-    bit).
+    bit), before the renderer's float32 (so float64 rays keep their precision).
 
     Such a grid samples only inside its box, so the move changes its samples by rounding alone, but in float32 a far
     origin's rounding had become theirs: at 1e7 units (float32's spacing 1) the slab test's path through a 3-unit box
@@ -223,11 +223,11 @@ def _moved_to_the_box(grid: VoxelGrid, origins: torch.Tensor,
     zero = torch.zeros(origins.shape[0], device=origins.device)
     if not grid.lattice_sampled:  # a scene grid samples from the camera on (its near bins): left as they are
         return origins, zero
-    wide = origins.double(), directions.double()
+    wide = origins.double(), unit_directions(directions.double())  # (float64 rays: as precise as they came)
     near, _ = ray_box_intersection(*wide, grid.bbox_min.double(), grid.bbox_max.double())
     moved = near > grid.box_diagonal
     shift = torch.where(moved, near, 0.0)
-    return torch.where(moved[:, None], (wide[0] + shift[:, None] * wide[1]).float(), origins), shift.float()
+    return torch.where(moved[:, None], (wide[0] + shift[:, None] * wide[1]).to(origins.dtype), origins), shift.float()
 
 
 def composite(groups: Iterable[RaySamples], values: Field, n_rays: int, background: torch.Tensor) -> RenderOutput:
