@@ -1922,6 +1922,39 @@ def test_a_fit_whose_grid_record_meets_a_database_outage_leaves_no_orphan_grid_o
     assert runtime.recorded_key(job_id, "initial_grid.safetensors") == rec.grid_key
 
 
+
+def test_a_shared_fit_whose_grid_was_deleted_from_the_storage_is_fitted_again_by_the_next_job(db, monkeypatch):
+    """The scene's fitted grid G_i deleted from the storage (by hand, a bucket's lifecycle rule): every later job
+    with its reconstruction parameters failed at once, "reconstruct: StorageError: reconstructions/<id>/grid-...: not
+    in the storage", for good, and no job could ever fit it again. The next job fits it again, saying so in a warning
+    on its timeline, and goes on with the new grid."""
+    from sqlalchemy import select
+
+    from conftest import make_sphere_grid
+    from voxe_service.db import session_scope
+    from voxe_service.models import JobEvent
+    from voxe_service.storage import get_storage
+    from worker import runtime, tasks
+
+    storage, scene = get_storage(db), add_scene()
+    rec_id = add_reconstruction(scene, params={"route": "voxelize"})
+    first, later = (add_job(scene, "queued", 0, reconstruction_id=rec_id) for _ in range(2))
+    monkeypatch.setattr(tasks, "_check_job_can_start", lambda job, settings: None)
+    monkeypatch.setattr(tasks, "_voxelize", lambda *args: make_sphere_grid(8))
+    assert tasks.reconstruct_task.apply(args=(first,)).get()["state"] == "done"
+    lost = runtime.load_reconstruction(rec_id).grid_key
+    storage.delete(lost)
+    assert tasks.reconstruct_task.apply(args=(later,)).get()["state"] == "done", job_row(later).error
+    rec = runtime.load_reconstruction(rec_id)
+    assert (rec.state, rec.owner_job_id, rec.run_count, rec.error) == ("succeeded", later, 2, None)
+    assert rec.grid_key != lost and storage.list(f"reconstructions/{rec_id}/") == [rec.grid_key]
+    assert runtime.recorded_key(later, "initial_grid.safetensors") == rec.grid_key
+    with session_scope() as session:
+        warnings = list(session.scalars(select(JobEvent.detail).where(JobEvent.job_id == later,
+                                                                      JobEvent.kind == "warning")))
+    assert warnings == [f"the scene's reconstruction {rec_id} had its grid {lost} deleted from the storage: fitting "
+                        "it again"]
+
 def test_a_fit_whose_grid_record_meets_a_database_outage_is_handed_back_to_the_jobs_waiting_on_it(db, monkeypatch):
     """The database down exactly as a finished fit recorded its grid: the record raised out of the fit's hand-back, so
     the fit stayed running, owned by the job gone back to the queue, and another job waiting on it could not take it

@@ -33,8 +33,8 @@ from voxe_service import datasets
 from voxe_service.db import DATABASE_UNAVAILABLE, database_outage, locked, session_scope, sync_clock
 from voxe_service.jobs import finish_jobs, record_event
 from voxe_service.models import (
-    CANCELED, EVALUATE, FAILED, PROCESSING, QUEUED, R_FAILED, R_PENDING, R_RUNNING, READY, RUNNING, SUCCEEDED,
-    TERMINAL_STATES, Artifact, Job, JobEvent, Reconstruction, Scene, utcnow,
+    CANCELED, EVALUATE, FAILED, PROCESSING, QUEUED, R_FAILED, R_PENDING, R_RUNNING, R_SUCCEEDED, READY, RUNNING,
+    SUCCEEDED, TERMINAL_STATES, Artifact, Job, JobEvent, Reconstruction, Scene, utcnow,
 )
 from voxe_service.queue import requeue_limit_error, storage_outage_limit_error
 from voxe_service.settings import TINY_MODEL, Settings
@@ -1123,6 +1123,18 @@ def hand_back_fit(rec_id: str, job_id: str, run_token: str | None, error: str) -
         return session.execute(update(Reconstruction).where(*_owned(rec_id, job_id, run_token),
                                                             Reconstruction.state == R_RUNNING)
                                .values(lease_until=None, error=error, **values)).rowcount == 1
+
+
+def refit_lost_grid(rec_id: str, grid_key: str) -> bool:
+    """Set the succeeded fit whose recorded grid ``grid_key`` the storage no longer holds back to pending, its grid
+    forgotten, for the next claim to fit it again; whether it did (not when another job did so first, or the fit
+    records another grid by now)."""
+    with session_scope() as session:
+        return session.execute(
+            update(Reconstruction).where(Reconstruction.id == rec_id, Reconstruction.state == R_SUCCEEDED,
+                                         Reconstruction.grid_key == grid_key)
+            .values(state=R_PENDING, grid_key=None, grid_size=None, grid_sha256=None, owner_job_id=None,
+                    owner_run_token=None, lease_until=None, finished_at=None)).rowcount == 1
 
 
 class LeaseLost(RuntimeError):

@@ -55,7 +55,8 @@ from voxe_service.queue import (
     requeue_interrupted, reset_queue, send_evaluations_alone, send_ingest_again, send_queued_again,
 )
 from voxe_service.settings import get_settings, model_label
-from voxe_service.storage import ObjectNotFound, StoredObject, get_storage, job_key, reconstruction_storage_key
+from voxe_service.storage import (ObjectNotFound, StorageError, StoredObject, get_storage, job_key,
+                                  reconstruction_storage_key)
 from worker import runtime
 from worker.celery_app import app
 from worker.evaluation import EvaluationFailed, run_evaluation
@@ -406,13 +407,25 @@ def _reconstruct(job: Job, settings, device: str, storage) -> None:
         raise RuntimeError("job has no reconstruction record")
     callbacks = StageCallbacks(job, "reconstruct", settings)
     first = True
-    ran_here = waiting = False
+    ran_here = waiting = refitted = False
     while True:
         rec = runtime.load_reconstruction(rec_id)
         if rec is None:
             raise RuntimeError(f"reconstruction {rec_id} was deleted")
         if rec.state == R_SUCCEEDED:
-            break
+            try:
+                grid_path = _grid_file(job.id, rec, settings, storage)  # fetched and checked against the record once
+                break
+            except StorageError as exc:
+                if refitted or not isinstance(exc.__cause__, ObjectNotFound):
+                    raise
+            # Its grid deleted from the storage (by hand, a bucket's lifecycle rule): fitted again, where every later
+            # job of the scene with these parameters had failed on it for good.
+            refitted = True
+            callbacks.on_warning("reconstruct", f"the scene's reconstruction {rec.id} had its grid {rec.grid_key} "
+                                                "deleted from the storage: fitting it again")
+            runtime.refit_lost_grid(rec.id, rec.grid_key)
+            continue
         claimed_at = time.monotonic()  # the lease runs out lease_s after the claim at the latest
         if runtime.try_claim_reconstruction(rec_id, job.id, job.worker_hostname, settings, allow_failed=first,
                                             run_token=job.run_token):
@@ -440,13 +453,11 @@ def _reconstruct(job: Job, settings, device: str, storage) -> None:
             raise StageCancelled("reconstruct canceled while waiting")
         time.sleep(min(1.0, settings.reconstruction_lease_s / 4))
 
-    rec = runtime.load_reconstruction(rec_id)
     reused = not ran_here and rec.owner_job_id != job.id
     runtime.update_job(job.id, held_by=job.run_token, reconstruction_reused=reused, iteration=rec.total,
                        total=rec.total, message="reused the scene's reconstruction" if reused else None)
     from voxe_core.backbones import load_grid
 
-    grid_path = _grid_file(job.id, rec, settings, storage)  # fetched and checked against the record once
     runtime.publish_artifact(job.id, "initial_grid.safetensors", grid_path, "grid", storage, key=rec.grid_key)
     initial = load_grid(grid_path)
     _record_edit_schedule(job, initial.kind, settings)
