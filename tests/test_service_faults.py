@@ -1923,6 +1923,50 @@ def test_a_fit_whose_grid_record_meets_a_database_outage_leaves_no_orphan_grid_o
 
 
 
+
+def test_a_fit_handed_back_by_a_database_outage_that_then_fails_leaves_no_grid_in_the_storage(db, monkeypatch):
+    """The database down as a finished fit recorded its stored grid: the fit was handed back, the run's grid stored
+    under its own name and recorded nowhere, left for the fit's next success to delete. When the fit then failed (its
+    redelivery's voxelizing raising), that grid stayed in the storage for good. A fit that ends failed deletes the
+    grids stored for it; the failure is the job's and the fit's as before."""
+    import sqlite3
+
+    from sqlalchemy.exc import OperationalError
+
+    from conftest import make_sphere_grid
+    from voxe_core.mesh_input import MeshError
+    from voxe_service.storage import get_storage
+    from worker import runtime, tasks
+
+    scene = add_scene()
+    rec_id = add_reconstruction(scene, params={"route": "voxelize"})
+    job_id = add_job(scene, "queued", 0, reconstruction_id=rec_id)
+    monkeypatch.setattr(tasks, "_check_job_can_start", lambda job, settings: None)
+    monkeypatch.setattr(tasks, "_voxelize", lambda *args: make_sphere_grid(8))
+    monkeypatch.setattr(runtime, "OUTAGE_PAUSE_S", 0.0)
+    with monkeypatch.context() as outage:
+        set_reconstruction = runtime.set_reconstruction
+
+        def down_as_the_grid_is_recorded(*args, **values):
+            if values.get("state") == "succeeded":
+                raise OperationalError("UPDATE reconstructions", {}, sqlite3.OperationalError("database is locked"))
+            return set_reconstruction(*args, **values)
+
+        outage.setattr(runtime, "set_reconstruction", down_as_the_grid_is_recorded)
+        result = tasks.reconstruct_task.apply(args=(job_id,))
+    assert result.state == "REJECTED" and result.result.requeue, result.result
+    assert len(get_storage(db).list(f"reconstructions/{rec_id}/grid-")) == 1  # the first run's, recorded nowhere
+
+    def unreadable(*args):
+        raise MeshError("mesh.obj: no faces")
+
+    monkeypatch.setattr(tasks, "_voxelize", unreadable)
+    assert tasks.reconstruct_task.apply(args=(job_id,)).get()["state"] == "failed"  # the redelivery
+    rec = runtime.load_reconstruction(rec_id)
+    assert (rec.state, rec.error) == ("failed", "MeshError: mesh.obj: no faces")
+    assert job_row(job_id).error == "reconstruct: MeshError: mesh.obj: no faces"
+    assert get_storage(db).list(f"reconstructions/{rec_id}/") == []
+
 def test_a_shared_fit_whose_grid_was_deleted_from_the_storage_is_fitted_again_by_the_next_job(db, monkeypatch):
     """The scene's fitted grid G_i deleted from the storage (by hand, a bucket's lifecycle rule): every later job
     with its reconstruction parameters failed at once, "reconstruct: StorageError: reconstructions/<id>/grid-...: not

@@ -577,9 +577,12 @@ def _fit(job: Job, rec, settings, storage, device: str, claimed_at: float) -> No
             outage = _outage(exc)
             fails_the_job = (isinstance(exc, Exception) and not isinstance(exc, NOT_THE_FITS_FAILURE)
                              and outage is None and not runtime.worker_in_cold_shutdown())
+            # Listed while this run owns the fit, so none is a later owner's: should the fit end failed, no grid is its
+            # own, and these go (an earlier run's whose record an outage refused had stayed for good)
+            strays = _stored(storage, rec.id, "grid-") if fails_the_job or is_out_of_memory(exc) else []
             if fails_the_job and grid is None and not is_out_of_memory(exc):
                 handed = runtime.set_reconstruction(rec.id, job.id, job.run_token, state=R_FAILED, lease_until=None,
-                                                    finished_at=utcnow(), error=runtime.failure_text(exc))
+                                                    finished_at=utcnow(), error=runtime.failure_text(exc)) and R_FAILED
             elif is_out_of_memory(exc) or fails_the_job:  # out of memory, or G_i made and not kept (a storage
                 # refusing it): no failure of the fit's; the error recorded, a job still waiting takes over
                 said = "" if grid is None else "its grid could not be stored: "
@@ -597,6 +600,9 @@ def _fit(job: Job, rec, settings, storage, device: str, claimed_at: float) -> No
                     **({"error": f"job {job.id}'s fit: stopped by {outage}"} if outage else {}))
             if grid_key is not None and not handed:  # the fit lost meanwhile, its upload maybe stored all the same
                 _discard_unless_recorded(storage, rec.id, grid_key)
+            if handed == R_FAILED:
+                for key in strays:
+                    storage.discard(key)
             raise
     if not done:  # (a cleanup: a storage refusing it must not stop the job going on with the fit as it is now)
         storage.discard(stored.key)
@@ -639,13 +645,19 @@ def _discard_unrecorded(storage, rec_id: str, prefix: str, recorded: str | None)
     and its fit ran again; once a grid is recorded the fit is done for good, so another grid is such an orphan, or a
     run's that lost the fit (which deletes its own), and no checkpoint is needed any more. A cleanup: a storage
     failing it fails nothing."""
+    for key in _stored(storage, rec_id, prefix):
+        if key != recorded:
+            storage.discard(key)
+
+
+def _stored(storage, rec_id: str, prefix: str) -> list[str]:
+    """The keys of the reconstruction's stored objects whose names start with ``prefix``, for a cleanup: none when the
+    storage cannot list them (logged)."""
     try:
-        orphans = [key for key in storage.list(reconstruction_storage_key(rec_id, prefix)) if key != recorded]
-    except Exception:  # noqa: BLE001 - see the docstring
+        return storage.list(reconstruction_storage_key(rec_id, prefix))
+    except Exception:  # noqa: BLE001 - a cleanup's: a storage failing it fails nothing
         log.warning("reconstruction %s: could not list its stored %s objects", rec_id, prefix, exc_info=True)
-        return
-    for key in orphans:
-        storage.discard(key)
+        return []
 
 
 def _outage(exc: BaseException) -> str | None:
