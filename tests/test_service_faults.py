@@ -2044,6 +2044,48 @@ def test_a_fit_whose_grid_record_meets_a_database_outage_is_handed_back_to_the_j
         assert runtime.set_reconstruction(rec_id, waiting, state="pending", owner_job_id=None)  # (let the first refit)
 
 
+
+def test_a_fit_stopped_by_a_database_outage_is_handed_back_once_the_database_answers_again(db, monkeypatch):
+    """A database outage stopped the fit, and lasted through its hand-back: the hand-back was tried once, while the
+    job's own give-back was tried again until the database answered. The job went back to the queue, but its fit
+    stayed running, owned by it, and a job waiting on it waited out the fit's lease (two minutes by default),
+    "fitted by" a job that fitted nothing. The hand-back is tried again as the give-back is: the fit is pending,
+    saying why, and the waiting job takes it over at once."""
+    import sqlite3
+
+    from sqlalchemy.exc import OperationalError
+
+    from worker import runtime, tasks
+
+    scene = add_scene()
+    rec_id = add_reconstruction(scene, params={"route": "voxelize"})
+    job_id = add_job(scene, "queued", 0, reconstruction_id=rec_id)
+    waiting = add_job(scene, "running", 0, "alive@host", "reconstruct", reconstruction_id=rec_id)
+    monkeypatch.setattr(tasks, "_check_job_can_start", lambda job, settings: None)
+    monkeypatch.setattr(tasks, "DATABASE_RETRY_S", (0.0, 0.0, 0.0))
+    down = sqlite3.OperationalError("database is locked")
+    set_reconstruction, refused = runtime.set_reconstruction, []
+
+    def the_outage_stops_the_fit(*args):
+        raise OperationalError("UPDATE jobs", {}, down)
+
+    def down_for_two_tries(*args, **values):
+        if len(refused) < 2:
+            refused.append(values)
+            raise OperationalError("UPDATE reconstructions", {}, down)
+        return set_reconstruction(*args, **values)
+
+    monkeypatch.setattr(tasks, "_voxelize", the_outage_stops_the_fit)
+    monkeypatch.setattr(runtime, "set_reconstruction", down_for_two_tries)
+    result = tasks.reconstruct_task.apply(args=(job_id,))
+    assert result.state == "REJECTED" and result.result.requeue, result.result
+    rec = runtime.load_reconstruction(rec_id)
+    said = "a database outage (the database cannot be reached or is locked)"
+    assert (rec.state, rec.owner_job_id, rec.lease_until, rec.error) == (
+        "pending", None, None, f"job {job_id}'s fit: stopped by {said}")
+    assert len(refused) == 2
+    assert runtime.try_claim_reconstruction(rec_id, waiting, "alive@host", db, allow_failed=False)
+
 def test_a_fit_whose_success_was_recorded_before_the_worker_ran_out_of_memory_stays_succeeded(db, monkeypatch):
     """The grid's record committed and then the same call raised out of memory (not an outage): the fit's hand-back
     for an out-of-memory worker checked ownership alone and handed the succeeded fit back, pending for the job waiting

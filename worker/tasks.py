@@ -574,30 +574,35 @@ def _fit(job: Job, rec, settings, storage, device: str, claimed_at: float) -> No
                 checkpoint_key=None,  # (none is resumed from any more; every run's goes below)
             )
         except BaseException as exc:  # (each change below applies only while this job still owns the fit)
-            outage = _outage(exc)
+            outage, out_of_memory, failure = _outage(exc), is_out_of_memory(exc), runtime.failure_text(exc)
             fails_the_job = (isinstance(exc, Exception) and not isinstance(exc, NOT_THE_FITS_FAILURE)
                              and outage is None and not runtime.worker_in_cold_shutdown())
             # Listed while this run owns the fit, so none is a later owner's: should the fit end failed, no grid is its
             # own, and these go (an earlier run's whose record an outage refused had stayed for good)
-            strays = _stored(storage, rec.id, "grid-") if fails_the_job or is_out_of_memory(exc) else []
-            if fails_the_job and grid is None and not is_out_of_memory(exc):
-                handed = runtime.set_reconstruction(rec.id, job.id, job.run_token, state=R_FAILED, lease_until=None,
-                                                    finished_at=utcnow(), error=runtime.failure_text(exc)) and R_FAILED
-            elif is_out_of_memory(exc) or fails_the_job:  # out of memory, or G_i made and not kept (a storage
-                # refusing it): no failure of the fit's; the error recorded, a job still waiting takes over
-                said = "" if grid is None else "its grid could not be stored: "
-                handed = runtime.hand_back_fit(rec.id, job.id, job.run_token,
-                                               f"job {job.id}'s fit: {said}{runtime.failure_text(exc)}")
-            else:  # stopped for the owner's sake (NOT_THE_FITS_FAILURE), an outage, a full disk, or the worker
-                # going down (SystemExit, KeyboardInterrupt, or what a cold shutdown raises in a solo pool's task): a
-                # waiting job, or this one redelivered, takes over from the checkpoint; an outage said (pending with
-                # no error, the fit had read as about to run while its jobs waited out the outage). An outage met as
-                # the grid was recorded hands it back too, where the fit had stayed running, its waiting jobs waiting
-                # out the lease; unless the record went through (its answer lost), which leaves it succeeded.
-                handed = runtime.set_reconstruction(
+            strays = _stored(storage, rec.id, "grid-") if fails_the_job or out_of_memory else []
+
+            def hand_back(_again: bool) -> str | bool | None:
+                if fails_the_job and grid is None and not out_of_memory:
+                    return runtime.set_reconstruction(rec.id, job.id, job.run_token, state=R_FAILED, lease_until=None,
+                                                      finished_at=utcnow(), error=failure) and R_FAILED
+                if out_of_memory or fails_the_job:  # out of memory, or G_i made and not kept (a storage refusing
+                    # it): no failure of the fit's; the error recorded, a job still waiting takes over
+                    said = "" if grid is None else "its grid could not be stored: "
+                    return runtime.hand_back_fit(rec.id, job.id, job.run_token, f"job {job.id}'s fit: {said}{failure}")
+                # Stopped for the owner's sake (NOT_THE_FITS_FAILURE), an outage, a full disk, or the worker going down
+                # (SystemExit, KeyboardInterrupt, or what a cold shutdown raises in a solo pool's task): a waiting job,
+                # or this one redelivered, takes over from the checkpoint; an outage said (pending with no error, the
+                # fit had read as about to run while its jobs waited out the outage). An outage met as the grid was
+                # recorded hands it back too, where the fit had stayed running, its waiting jobs waiting out the
+                # lease; unless the record went through (its answer lost), which leaves it succeeded.
+                return runtime.set_reconstruction(
                     rec.id, job.id, job.run_token, running=True, state=R_PENDING, owner_job_id=None,
                     owner_run_token=None, lease_until=None,
                     **({"error": f"job {job.id}'s fit: stopped by {outage}"} if outage else {}))
+
+            # Tried again while the database refuses, as the job's give-back is: refused once, the fit had stayed
+            # running, owned by a job gone back to the queue, its waiting jobs waiting out its lease.
+            handed = _retried(hand_back, job.id, "its fit could not be handed back")
             if grid_key is not None and not handed:  # the fit lost meanwhile, its upload maybe stored all the same
                 _discard_unless_recorded(storage, rec.id, grid_key)
             if handed == R_FAILED:
