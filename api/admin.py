@@ -111,8 +111,8 @@ def cancel_unfinished_jobs(session: Session, key: ApiKey) -> int:
 
 def fail_processing_scenes(session: Session, key: ApiKey) -> list[str]:
     """Fail a revoked key's scenes still processing, naming the revoke; their ids. Their ingests had still run,
-    taking a worker for a scene no key can use or delete; a queued one now skips it, and a running one's result is
-    refused when it ends (what it stored discarded)."""
+    taking a worker for a scene no key can use or delete; a queued one now skips it, and a running one stops at its
+    next step (``worker.ingest``), what it stored discarded."""
     scene_ids = list(session.scalars(select(Scene.id).where(Scene.owner_key_id == key.id, Scene.state == PROCESSING)))
     return [scene_id for scene_id in scene_ids
             if fail_scene(session, scene_id, f"its API key {key.id} was revoked while it was processing")]

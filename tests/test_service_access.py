@@ -444,6 +444,44 @@ def test_revoking_a_key_fails_its_scenes_still_processing_so_no_worker_ingests_t
         "scene_id": leaving["id"], "skipped": f"scene {leaving['id']} is failed"}
 
 
+
+def test_revoking_a_key_stops_its_scenes_ingest_already_running(auth_client, mic_zip, monkeypatch, capsys):
+    """A key revoked while a worker ingests its scene: the revoke fails the scene, but the running ingest went on to
+    the end, decoding (a mesh's: rendering too) the whole upload for a scene no key can use, and only then had its
+    result refused. It stops at its next step, as a canceled job's stage stops at its next cancel check: the scene
+    stays failed naming the revoke, the ingest is skipped saying so, and nothing of the scene is stored."""
+    from api import admin
+    from voxe_service import datasets
+    from voxe_service.db import session_scope
+    from voxe_service.models import Scene
+    from voxe_service.settings import get_settings
+    from voxe_service.storage import get_storage, scene_key
+    from worker import ingest as ingest_module
+    from worker.ingest import ingest_scene
+
+    key_id, token = _create_key("leaving")
+    scene_id = _upload(auth_client, mic_zip, bearer(token)).json()["id"]
+    unpack, decoded = datasets.unpack, []
+
+    def revoked_as_it_unpacks(archive, dest):
+        assert admin.main(["revoke-key", key_id]) == 0
+        return unpack(archive, dest)
+
+    def decode(folder, downsample):
+        decoded.append(folder)
+        return ingest_module.Decoded(1, "relu")
+
+    monkeypatch.setattr(datasets, "unpack", revoked_as_it_unpacks)
+    monkeypatch.setattr(ingest_module, "decode", decode)
+    storage = get_storage(get_settings())
+    assert ingest_scene(scene_id, get_settings(), storage, "w@host") == {
+        "scene_id": scene_id, "skipped": f"scene {scene_id} was deleted or failed meanwhile"}
+    assert decoded == []  # stopped before decoding the upload
+    with session_scope() as session:
+        scene = session.get(Scene, scene_id)
+        assert (scene.state, scene.error) == ("failed", f"its API key {key_id} was revoked while it was processing")
+    assert storage.list(scene_key(scene_id)) == []
+
 # ------------------------------------------------------------------------------------------ the auth switch
 def test_auth_is_off_only_on_loopback(root, monkeypatch, caplog):  # noqa: F811
     from api.main import create_app

@@ -228,12 +228,15 @@ def _ingest(scene_id: str, token: str, upload: StoredObject, interrupted: int, s
     with locked_folder(work, f"{scene_id}-") as scratch:
         try:
             archive = fetch(storage, upload, scratch / "archive.zip", f"scene {scene_id}'s upload {upload.key}")
+            _still_held(lease)
             root = datasets.unpack(archive, scratch / "data")
             if mesh_upload:
+                _still_held(lease)
                 render_mesh(root)
+            _still_held(lease)
             count, values["backbone"] = decode(root, settings.validation_downsample)
             if mesh_upload:  # the rendered dataset (and the mesh beside it) becomes the scene's archive
-                lease.check()
+                _still_held(lease)
                 archive = scratch / datasets.DATASET_ARCHIVE
                 datasets.package(root, archive)
                 stored = storage.put_file(run_archive_key(scene_id, token), archive, "application/zip")
@@ -252,6 +255,14 @@ def _ingest(scene_id: str, token: str, upload: StoredObject, interrupted: int, s
             _fail(scene_id, token, reason, storage)
             return {"scene_id": scene_id, "state": "failed"}
     return _ready(scene_id, token, values, storage, settings, upload.key if mesh_upload else None)
+
+
+def _still_held(lease: LeaseKeeper) -> None:
+    """Between the ingest's steps: its hold renewed, or LeaseLost once the scene is no longer this run's to ingest (its
+    key revoked, which fails it; deleted; another run took it over), as a canceled job's stage stops at its next
+    check: a revoked key's ingest had decoded (and rendered) the upload to the end for a scene no key can use."""
+    lease.renew()
+    lease.check()
 
 
 def run_archive_key(scene_id: str, token: str) -> str:

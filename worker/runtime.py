@@ -1230,8 +1230,10 @@ def stage_lease(job_id: str, run_token: str, settings: Settings) -> LeaseKeeper:
 
 
 def ingest_lease(scene_id: str, token: str, settings: Settings) -> LeaseKeeper:
-    """The lease of the run that holds the scene's ingest (``worker.ingest``), kept while it runs."""
-    renew = _held_row_renewal(lambda: update(Scene).where(Scene.id == scene_id, Scene.ingest_token == token),
+    """The lease of the run that holds the scene's ingest (``worker.ingest``), kept while it runs and the scene is
+    processing: one failed meanwhile (its key revoked) or deleted is held no more, and its ingest stops."""
+    renew = _held_row_renewal(lambda: update(Scene).where(Scene.id == scene_id, Scene.ingest_token == token,
+                                                          Scene.state == PROCESSING),
                               settings.stage_lease_s, "ingest_lease_until")
     return LeaseKeeper(renew, settings.stage_lease_s, f"scene {scene_id}'s ingest", "another run took it over",
                        f"voxe-ingest-{scene_id}")
