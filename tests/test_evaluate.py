@@ -994,6 +994,44 @@ def test_an_evaluation_whose_upload_fails_mid_set_lists_none_of_its_results(serv
     assert storage.list(f"jobs/{job['id']}/") == []
 
 
+
+@pytest.mark.parametrize("old_grid", ["deleted", "kept"])
+def test_an_evaluation_scores_the_edits_against_the_grid_they_were_edited_from_not_a_later_fit(
+        service, sphere_grid, make_sphere_grid, old_grid):
+    """A reconstruction whose grid was deleted from the storage is fitted again by the next job that needs it, and
+    records the new grid: an evaluation of edits made from the first fit read the reconstruction's grid, so it scored
+    each edit against a G_i it was not made from (an unchanged edit's PSNR outside the mask fell from exact to that
+    of another sphere). It reads the G_i each source recorded: still stored, it scores against it; deleted, the
+    evaluation fails naming it."""
+    from sqlalchemy import update
+
+    from voxe_service.db import session_scope
+    from voxe_service.models import Reconstruction
+    from voxe_service.storage import get_storage
+    from worker import runtime, tasks
+
+    client, scene_id, root = service
+    edit = client.post("/v1/jobs", json={"scene_id": scene_id, "prompt": "a wood carving of a mic"}).json()
+    _as_if_edited(edit["id"], sphere_grid, sphere_grid, None, root)  # (its edit: G_i unchanged)
+    storage, rec = get_storage(tasks.get_settings()), runtime.load_reconstruction(edit["reconstruction"]["id"])
+    runtime.publish_artifact(edit["id"], "initial_grid.safetensors", root / "initial.safetensors", "grid", storage,
+                             key=rec.grid_key)  # (as its reconstruct stage records G_i)
+    if old_grid == "deleted":
+        storage.delete(rec.grid_key)
+    make_sphere_grid(radius=0.5).save(root / "refitted.safetensors")
+    refitted = storage.put_file(f"reconstructions/{rec.id}/grid-again.safetensors", root / "refitted.safetensors")
+    with session_scope() as session:
+        session.execute(update(Reconstruction).where(Reconstruction.id == rec.id).values(
+            grid_key=refitted.key, grid_size=refitted.size, grid_sha256=refitted.sha256))
+    job = client.post("/v1/evaluations", json={"job_ids": [edit["id"]], "object": "mic", "params": RING}).json()
+    outcome = tasks.evaluate_task.apply(args=(job["id"],)).get()["state"]
+    done = client.get(f"/v1/jobs/{job['id']}").json()
+    if old_grid == "deleted":
+        assert (outcome, done["error"]) == ("failed", f"evaluate: StorageError: {rec.grid_key}: not in the storage, "
+                                                      "deleted there since it was recorded")
+    else:
+        assert outcome == "done" and done["result"]["rows"][0]["psnr"] > 60
+
 def test_evaluation_of_a_job_that_failed_after_queueing_fails_with_the_reason(service, sphere_grid):
     from sqlalchemy import update
 

@@ -18,6 +18,7 @@ from pathlib import Path
 from voxe_service.model_inventory import submission_note
 from voxe_service.models import SUCCEEDED, Job
 from voxe_service.settings import TINY_MODEL, Settings
+from voxe_service.storage import StoredObject
 from worker import runtime
 from worker.inputs import fetch_grid, load_images
 from worker.runtime import StageCallbacks
@@ -91,6 +92,26 @@ def _sources(job: Job) -> list[Job]:
     return jobs
 
 
+def _initial_grid(sources: list[Job], rec) -> StoredObject:
+    """G_i the sources were edited from: the grid their reconstruct stage recorded as ``initial_grid.safetensors``.
+    The reconstruction's grid is that one unless the fit was made again since (its grid deleted from the storage:
+    ``worker.tasks._reconstruct``), and scoring against the new fit had measured each edit against a G_i it was not
+    made from; the reconstruction's own serves sources that recorded none."""
+    recorded = set()
+    for source in sources:
+        try:
+            recorded.add(runtime.recorded_artifact(source.id, "initial_grid.safetensors"))
+        except RuntimeError:  # none recorded
+            recorded.add(None if rec.grid_key is None else runtime.reconstruction_grid(rec))
+    if len(recorded) > 1:
+        raise EvaluationFailed(f"evaluate: the source jobs were edited from different fits of their reconstruction "
+                               f"{rec.id} (its grid was deleted from the storage and fitted again between them): "
+                               "evaluate those of each fit apart")
+    if (grid := recorded.pop()) is None:
+        raise EvaluationFailed(f"evaluate: the source jobs' reconstruction {rec.id} has no grid ({rec.state})")
+    return grid
+
+
 def run_evaluation(job: Job, settings: Settings, device: str, storage) -> None:
     """The evaluate stage body (called by the task frame in :mod:`worker.tasks`)."""
     from voxe_core.evaluate import EditSample, EvaluateConfig, evaluate, format_table
@@ -102,9 +123,9 @@ def run_evaluation(job: Job, settings: Settings, device: str, storage) -> None:
     clip = _scorer("clip", params["clip_model"], device, settings)
     fid = _scorer("fid", params["fid_model"], device, settings)
     rec = runtime.load_reconstruction(sources[0].reconstruction_id)
-    if rec is None or rec.grid_key is None:
+    if rec is None:
         raise EvaluationFailed("evaluate: the source jobs' reconstruction is gone")
-    initial = fetch_grid(job.id, "initial_grid.safetensors", settings, storage, runtime.reconstruction_grid(rec))
+    initial = fetch_grid(job.id, "initial_grid.safetensors", settings, storage, _initial_grid(sources, rec))
     edits = []
     for source in sources:
         name = "refined_grid.safetensors" if source.mode == "local" else "edited_grid.safetensors"
