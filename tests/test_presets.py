@@ -1556,6 +1556,43 @@ def test_the_export_reads_the_orbit_centre_its_reconstruction_recorded_and_fetch
     assert centres and all(torch.equal(c, initial.orbit_centre()) for c in centres)
 
 
+
+def test_a_jobs_edit_reads_the_initial_grid_its_reconstruct_stage_recorded_not_a_later_fit(service, monkeypatch,
+                                                                                            tmp_path):
+    """A reconstruction whose grid was deleted from the storage is fitted again by the next job that needs it: a job
+    reconstructed from the first fit read the reconstruction's grid in its later stages, so it edited (refined,
+    centred its export on) another G_i than the one its reconstruct stage recorded and published. Its stages read the
+    G_i it recorded."""
+    from sqlalchemy import update
+
+    import voxe_core.edit
+    from conftest import make_sphere_grid
+    from voxe_core.backbones import load_grid
+    from voxe_service.db import session_scope
+    from voxe_service.models import Reconstruction
+    from voxe_service.storage import get_storage
+    from worker import runtime, tasks
+
+    client, scene_id = service
+    job = _reconstructed_job(client, scene_id, "scene")
+    settings, storage = tasks.get_settings(), get_storage()
+    initial = load_grid(runtime.scratch_dir(job["id"], settings) / "initial_grid.safetensors")
+    rec_id = runtime.load_job(job["id"]).reconstruction_id
+    make_sphere_grid(8).save(tmp_path / "refitted.safetensors")  # the fit made again: another grid recorded
+    refitted = storage.put_file(f"reconstructions/{rec_id}/grid-again.safetensors", tmp_path / "refitted.safetensors")
+    with session_scope() as session:
+        session.execute(update(Reconstruction).where(Reconstruction.id == rec_id).values(
+            grid_key=refitted.key, grid_size=refitted.size, grid_sha256=refitted.sha256))
+    runtime.cleanup_scratch(job["id"], settings)  # (the edit on another worker)
+    monkeypatch.setattr(runtime, "get_guidance", lambda *args: NO_MODEL)
+    monkeypatch.setattr(voxe_core.edit, "edit", lambda initial, *args, **kwargs: initial.clone_grid())
+    assert tasks.edit_task.apply(args=(job["id"],)).get()["state"] == "done"
+    edited = client.get(f"/v1/jobs/{job['id']}/artifacts/edited_grid.safetensors")
+    (tmp_path / "edited.safetensors").write_bytes(edited.content)
+    edited = load_grid(tmp_path / "edited.safetensors")  # (the edit as G_i unchanged)
+    assert (edited.kind, edited.resolution) == (initial.kind, initial.resolution)
+    assert torch.equal(edited.features, initial.features)
+
 def _edited_job_exporting_a_mesh(client, scene_id, monkeypatch) -> str:
     """A reconstructed job, its edit run (the initial grid as the edit), whose export will extract a mesh (an
     icosphere: the tiny fit's grid may have no surface at the level); its id."""

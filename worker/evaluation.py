@@ -20,7 +20,7 @@ from voxe_service.models import SUCCEEDED, Job
 from voxe_service.settings import TINY_MODEL, Settings
 from voxe_service.storage import StoredObject
 from worker import runtime
-from worker.inputs import fetch_grid, load_images
+from worker.inputs import fetch_grid, load_images, recorded_initial_grid
 from worker.runtime import StageCallbacks
 
 log = logging.getLogger("voxe.worker")
@@ -93,16 +93,9 @@ def _sources(job: Job) -> list[Job]:
 
 
 def _initial_grid(sources: list[Job], rec) -> StoredObject:
-    """G_i the sources were edited from: the grid their reconstruct stage recorded as ``initial_grid.safetensors``.
-    The reconstruction's grid is that one unless the fit was made again since (its grid deleted from the storage:
-    ``worker.tasks._reconstruct``), and scoring against the new fit had measured each edit against a G_i it was not
-    made from; the reconstruction's own serves sources that recorded none."""
-    recorded = set()
-    for source in sources:
-        try:
-            recorded.add(runtime.recorded_artifact(source.id, "initial_grid.safetensors"))
-        except RuntimeError:  # none recorded
-            recorded.add(None if rec.grid_key is None else runtime.reconstruction_grid(rec))
+    """G_i the sources were edited from (``inputs.recorded_initial_grid``): scoring against the reconstruction's grid,
+    fitted again since, had measured each edit against a G_i it was not made from."""
+    recorded = {recorded_initial_grid(source.id, rec) for source in sources}
     if len(recorded) > 1:
         raise EvaluationFailed(f"evaluate: the source jobs were edited from different fits of their reconstruction "
                                f"{rec.id} (its grid was deleted from the storage and fitted again between them): "

@@ -3,7 +3,7 @@ reused while they are the recorded bytes)."""
 
 from __future__ import annotations
 
-from voxe_service.models import READY, Job, Scene
+from voxe_service.models import READY, Job, Reconstruction, Scene
 from voxe_service.storage import StoredObject
 from worker import runtime
 
@@ -28,6 +28,17 @@ def load_images(job: Job, rec_params: dict, settings, storage):
     with runtime.scene_dataset(job_scene(job), settings, storage) as root:
         return load_scene(root, rec_params["split"], rec_params["downsample"], rec_params["max_images"],
                           resample=resample)
+
+
+def recorded_initial_grid(job_id: str, rec: Reconstruction) -> StoredObject | None:
+    """G_i as the job's reconstruct stage recorded it (its ``initial_grid.safetensors``), which its later stages and
+    an evaluation of it read: the reconstruction's grid is that one unless the fit was made again since (its grid
+    deleted from the storage: ``worker.tasks._reconstruct``), and reading the new fit had worked from another G_i than
+    the stages before. The reconstruction's own for a job that recorded none; None when it has none either."""
+    try:
+        return runtime.recorded_artifact(job_id, "initial_grid.safetensors")
+    except RuntimeError:  # none recorded
+        return None if rec.grid_key is None else runtime.reconstruction_grid(rec)
 
 
 def fetch_grid(job_id: str, name: str, settings, storage, stored: StoredObject | None = None):

@@ -61,7 +61,7 @@ from worker import runtime
 from worker.celery_app import app
 from worker.evaluation import EvaluationFailed, run_evaluation
 from worker.ingest import ingest_scene, load_stored_mesh
-from worker.inputs import fetch_grid, job_scene, load_images
+from worker.inputs import fetch_grid, job_scene, load_images, recorded_initial_grid
 from worker.runtime import JobSkipped, StageCallbacks, StageCarriedOn, StageHeld
 
 if TYPE_CHECKING:
@@ -510,7 +510,7 @@ def _orbit_centre(job: Job, settings, storage) -> "torch.Tensor":
     if stored is not None:
         return torch.tensor(stored, dtype=torch.float32)
     rec = runtime.load_reconstruction(job.reconstruction_id)
-    initial = fetch_grid(job.id, "initial_grid.safetensors", settings, storage, runtime.reconstruction_grid(rec))
+    initial = fetch_grid(job.id, "initial_grid.safetensors", settings, storage, recorded_initial_grid(job.id, rec))
     return _record_orbit_centre(job.id, initial)
 
 
@@ -744,7 +744,7 @@ def _edit(job: Job, settings, device: str, storage) -> None:
 
     guidance = runtime.get_guidance(job.sds_model, device, settings, job)  # first: a missing model fails fast
     rec = runtime.load_reconstruction(job.reconstruction_id)
-    initial = fetch_grid(job.id, "initial_grid.safetensors", settings, storage, runtime.reconstruction_grid(rec))
+    initial = fetch_grid(job.id, "initial_grid.safetensors", settings, storage, recorded_initial_grid(job.id, rec))
     config = _record_edit_schedule(job, initial.kind, settings)  # SPEC §5's schedule for a scene G_i
     if config.render.fused and not fused_marcher_runs_on(device):
         log.warning("job %s: VOXE_FUSED_MARCHER is on, but Triton does not run on %s here (it needs CUDA and the "
@@ -810,7 +810,7 @@ def _refine(job: Job, settings, device: str, storage) -> None:
 
     guidance = runtime.get_guidance(job.attention_model, device, settings, job)
     rec = runtime.load_reconstruction(job.reconstruction_id)
-    initial = fetch_grid(job.id, "initial_grid.safetensors", settings, storage, runtime.reconstruction_grid(rec))
+    initial = fetch_grid(job.id, "initial_grid.safetensors", settings, storage, recorded_initial_grid(job.id, rec))
     edited = fetch_grid(job.id, "edited_grid.safetensors", settings, storage)
     config = refine_config(job.params, job.attention_model)
     callbacks = StageCallbacks(job, "refine", settings,
