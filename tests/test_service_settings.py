@@ -237,6 +237,30 @@ def test_sqlite_files_under_the_home_folder_are_opened_there(fresh_settings, tmp
     assert not (tmp_path / "~").exists()
 
 
+def test_a_sqlite_uri_filename_under_the_home_folder_is_opened_there(fresh_settings, tmp_path):
+    """``sqlite:///file:~/vx/voxe.db?uri=true``: the folder and the migration lock were made under the home folder
+    (settings.sqlite_file expands the '~'), but SQLite was handed the URI as written and opened './~/vx/voxe.db'
+    ("unable to open database file"). The '~' is expanded in the URL too, as a plain file name's."""
+    from voxe_service.db import make_engine, run_migrations
+    from voxe_service.settings import sqlite_file
+
+    home = tmp_path / "home"
+    fresh_settings.setenv("HOME", str(home))
+    fresh_settings.chdir(tmp_path)
+    fresh_settings.setenv("VOXE_DATABASE_URL", "sqlite:///file:~/vx/voxe.db?uri=true")
+    settings = get_settings()
+    assert sqlite_file(settings.database_url) == home / "vx" / "voxe.db"
+    run_migrations(settings.database_url)
+    engine = make_engine(settings.database_url)
+    try:
+        with engine.connect() as connection:
+            assert connection.exec_driver_sql("SELECT count(*) FROM jobs").scalar_one() == 0
+    finally:
+        engine.dispose()
+    assert {path.name for path in (home / "vx").iterdir()} >= {"voxe.db", "voxe.db.migrate.lock"}
+    assert not (tmp_path / "~").exists()
+
+
 def test_folders_under_the_home_folder_are_made_there(fresh_settings, tmp_path):
     """VOXE_STORAGE_DIR=~/voxe (as env files and compose pass it: no shell expands it) had stored every artifact under
     a folder named '~' in the working directory; the work and model folders alike."""

@@ -16,7 +16,7 @@ import sys
 from functools import lru_cache
 from pathlib import Path
 from typing import TYPE_CHECKING, Literal
-from urllib.parse import unquote, urlsplit
+from urllib.parse import quote, unquote, urlsplit
 
 from pydantic import Field, ValidationError, ValidationInfo, field_validator, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
@@ -363,27 +363,38 @@ def sqlite_file(url: str | URL) -> Path | None:
     percent-decoded, not the URI as written (whose folder had been made, literally 'file:.', beside the working
     directory's ./var)."""
     from sqlalchemy.engine import make_url
-    from sqlalchemy.util import asbool
 
     parsed = make_url(url)
     if parsed.get_backend_name() != "sqlite":
         return None
     name = parsed.database or ""
-    if asbool(parsed.query.get("uri", False)) and name.startswith("file:"):
+    if _uri_filename(parsed):
         name = unquote(urlsplit(name).path)
     if name in ("", ":memory:") or parsed.query.get("mode") == "memory":
         return None
     return Path(name).expanduser()
 
 
+def _uri_filename(parsed: URL) -> bool:
+    """Whether the SQLite URL ``parsed`` names a URI filename (``file:...`` with uri=true), which SQLite reads as a
+    URI."""
+    from sqlalchemy.util import asbool
+
+    return asbool(parsed.query.get("uri", False)) and (parsed.database or "").startswith("file:")
+
+
 def _sqlite_home_expanded(url: str, parsed: URL) -> str:
     """``url`` (read as ``parsed``) with the '~' of a SQLite file under the home folder expanded
-    (``sqlite:///~/voxe.db``): SQLite opens the name as written, under a folder named '~' in the working directory
-    ("unable to open database file"), where the service had made the folders and the migration lock under the home
-    folder."""
-    if parsed.get_backend_name() != "sqlite" or not (parsed.database or "").startswith("~"):
+    (``sqlite:///~/voxe.db``, or the URI filename ``sqlite:///file:~/voxe.db?uri=true``): SQLite opens the name as
+    written, under a folder named '~' in the working directory ("unable to open database file"), where the service
+    had made the folders and the migration lock under the home folder (:func:`sqlite_file`)."""
+    scheme = "file:" if _uri_filename(parsed) else ""
+    if parsed.get_backend_name() != "sqlite" or not (parsed.database or "").startswith(f"{scheme}~"):
         return url
-    return parsed.set(database=os.path.expanduser(parsed.database)).render_as_string(hide_password=False)
+    head, slash, rest = parsed.database.removeprefix(scheme).partition("/")
+    home = os.path.expanduser(unquote(head) if scheme else head)
+    database = f"{scheme}{quote(home) if scheme else home}{slash}{rest}"
+    return parsed.set(database=database).render_as_string(hide_password=False)
 
 
 def _http_url_with_host(url: str) -> bool:
