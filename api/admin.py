@@ -119,7 +119,13 @@ def fail_processing_scenes(session: Session, key: ApiKey) -> list[str]:
 
 
 def _expiry(key: ApiKey) -> str:
-    return f"expires {key.expires_at.isoformat(timespec='seconds')}" if key.expires_at else "never expires"
+    """The key's expiry as it stands: an update-key changing an expired key's quotas had said "expires <a time
+    past>", as if the key worked."""
+    if key.expires_at is None:
+        return "never expires"
+    when = key.expires_at.isoformat(timespec="seconds")
+    return f"expired {when}: its token is refused until --expires-in gives it a later expiry" if has_expired(key) \
+        else f"expires {when}"
 
 
 UPDATES = ("max_active_jobs", "max_upload_bytes", "expires_in")

@@ -723,6 +723,21 @@ def test_update_key_refuses_what_it_cannot_do_naming_why(auth_client, capsys, ar
     assert expected in capsys.readouterr().err
 
 
+def test_update_key_of_an_expired_key_says_it_stays_expired(auth_client, capsys):
+    """Changing an expired key's quotas leaves it expired: update-key had said "expires <a time past>", as if the key
+    worked; it says it expired and that its token is refused until --expires-in."""
+    from datetime import datetime, timezone
+
+    from api import admin
+
+    key_id, token = _create_key("lapsed", expires_at=datetime(2026, 1, 1, tzinfo=timezone.utc))
+    assert admin.main(["update-key", key_id, "--max-active-jobs", "3"]) == 0
+    assert (f"updated key {key_id} (lapsed): max_active_jobs=3, max_upload_bytes=default, expired "
+            "2026-01-01T00:00:00+00:00: its token is refused until --expires-in gives it a later expiry"
+            ) in capsys.readouterr().err
+    assert "expired at" in auth_client.get("/v1/jobs", headers=bearer(token)).json()["detail"]
+
+
 def test_update_key_of_a_revoked_key_changes_nothing(auth_client, capsys):
     from api import admin
     from voxe_service.db import session_scope
