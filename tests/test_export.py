@@ -135,6 +135,19 @@ def test_a_replaced_file_keeps_its_permissions_and_a_symlink_stays_one(tmp_path)
     assert sorted(p.name for p in run.iterdir()) == ["view.png"]
 
 
+@pytest.mark.skipif(not hasattr(os, "geteuid") or os.geteuid() != 0, reason="only root gives a file to another user")
+def test_a_users_file_replaced_by_root_stays_the_users(tmp_path):
+    """Root (a container, sudo) writing over a user's 0600 file had made it root's, 0600: the user could no longer
+    read their own output. It keeps its owner, as it keeps its mode."""
+    view = tmp_path / "view.png"
+    view.write_bytes(b"old")
+    os.chown(view, 65534, 65534)
+    view.chmod(0o600)
+    save_png(view, torch.rand(4, 4, 3))
+    assert Image.open(view).size == (4, 4)
+    assert (view.stat().st_uid, view.stat().st_gid, stat.S_IMODE(view.stat().st_mode)) == (65534, 65534, 0o600)
+
+
 def test_an_obj_written_through_a_symlink_names_the_material_library_beside_it(tmp_path):
     """latest.obj -> runs/1/mesh.obj: the OBJ is written through the link, and its library with it, runs/1/mesh.mtl,
     which its mtllib names (the OBJ had named latest.mtl, written beside the link, not beside the OBJ)."""

@@ -74,9 +74,16 @@ def partial_path(path: Path, token: str) -> Path:
 
 def take_the_mode_of(target: Path, partial: Path) -> None:
     """Give ``partial`` the permissions of ``target``, the file it is to replace, if there is one (a new file gets the
-    umask's: a 0600 file replaced had become readable by all)."""
-    with suppress(FileNotFoundError):
-        os.chmod(partial, stat.S_IMODE(os.stat(target).st_mode))
+    umask's: a 0600 file replaced had become readable by all), and its owner where this process may give it (root: a
+    container or sudo writing a user's folder, whose 0600 file had become root's, its user locked out of it)."""
+    try:
+        old = os.stat(target)
+    except FileNotFoundError:
+        return
+    if os.geteuid() == 0 and (old.st_uid, old.st_gid) != (os.geteuid(), os.getegid()):
+        with suppress(PermissionError):  # (root squashed on NFS: the mode is kept all the same)
+            os.chown(partial, old.st_uid, old.st_gid)
+    os.chmod(partial, stat.S_IMODE(old.st_mode))  # after chown, which clears set-user-ID and set-group-ID
 
 
 @contextmanager
