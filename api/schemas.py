@@ -192,7 +192,7 @@ class JobParams(Strict):
         f"iteration {presets.EDIT_SCHEDULES['scene'].i_start} every {presets.EDIT_SCHEDULES['scene'].every} (SPEC §5)",
     )
     view_words: bool = Field(presets.VIEW_WORDS, description="append ', front view' etc. to the prompt from the pose (the authors' code)")
-    batch_size: int = Field(presets.BATCH_SIZE, ge=1, le=16)
+    batch_size: int = Field(presets.BATCH_SIZE, ge=1, le=paper.MAX_BATCH_SIZE)
     autocast: Literal["bf16", "fp16"] | None = None
     seed: int = Field(presets.SEED, ge=0, le=presets.MAX_SEED)
     preview_every: int = Field(presets.PREVIEW_EVERY, ge=0, le=200_000,

@@ -191,7 +191,20 @@ def test_a_count_that_is_no_whole_number_is_refused_by_name(name, value):
     torch.rand or a reshape) naming no setting, or run (checkpoint_every 0.5 checkpointed every step)."""
     with pytest.raises(ValueError, match=rf"^{name} takes whole numbers, got {re.escape(repr(value))}$"):
         EditConfig(**{name: value})
-    assert getattr(EditConfig(**{name: 400}), name) == 400
+    assert getattr(EditConfig(**{name: 16}), name) == 16
+
+
+def test_a_batch_size_past_the_services_limit_is_refused_naming_it():
+    """The API capped batch_size at 16 but EditConfig (the CLI's, through presets.edit_config) took any: 1,000 poses
+    rendered a step, each held with its autograd graph, ran out of memory only once the model had loaded."""
+    from voxe_core import presets
+    from voxe_core.constants import MAX_BATCH_SIZE
+
+    assert MAX_BATCH_SIZE == 16 and EditConfig(batch_size=16).batch_size == 16
+    for make in (lambda: EditConfig(batch_size=17), lambda: presets.edit_config({"batch_size": 1000})):
+        with pytest.raises(ValueError, match=r"^batch_size must be at most 16 \(the service's and the CLI's limit\), "
+                                             r"got (17|1000)$"):
+            make()
 
 
 @pytest.mark.parametrize("name, value, rule", [

@@ -99,6 +99,10 @@ REFINE_VIEWS = 32
 MAX_REFINE_VIEWS = 1000
 """The most views a refinement lifts maps from (the service's bound, and the CLI's)."""
 
+MAX_BATCH_SIZE = 16
+"""The most poses an edit renders per iteration (``batch_size``; the service's bound, and the CLI's through
+``EditConfig``): each is rendered with its autograd graph held until the step's backward."""
+
 REFINE_RAYS_PER_STEP = 8192
 """Rays per attention-grid fitting step."""
 

@@ -77,6 +77,7 @@ from voxe_core.constants import (
     EDIT_ITERATIONS,
     EDIT_LR,
     FLOAT32_MAX,
+    MAX_BATCH_SIZE,
     MAX_SEED,
     NERF_SYNTHETIC_FOV_X,
     NERF_SYNTHETIC_RADIUS,
@@ -234,6 +235,11 @@ class EditConfig:
             if getattr(self, name) < least:
                 off = " (0 turns it off)" if name in ("preview_every", "checkpoint_every") else ""
                 raise ValueError(f"{name} must be >= {least}{off}, got {getattr(self, name)}")
+        # (the CLI had taken any: --batch-size 1000 renders 1,000 poses a step, each held with its autograd graph until
+        # the step's backward, far past a GPU's memory, found only once the model had loaded)
+        if self.batch_size > MAX_BATCH_SIZE:
+            raise ValueError(f"batch_size must be at most {MAX_BATCH_SIZE} (the service's and the CLI's limit), got "
+                             f"{self.batch_size}")
         if not 0 < self.lr_decay_factor <= 1:  # (NaN too)
             raise ValueError(f"lr_decay_factor must be in (0, 1], got {self.lr_decay_factor}")
         if not 0.0 <= self.min_zenith_deg <= self.max_zenith_deg <= 180.0:  # (NaN too; had named neither field)
