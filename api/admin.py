@@ -105,7 +105,7 @@ def cancel_unfinished_jobs(session: Session, key: ApiKey) -> int:
     results no key can read and no request able to cancel them."""
     job_ids = list(session.scalars(select(Job.id).where(Job.owner_key_id == key.id,
                                                         Job.state.not_in(TERMINAL_STATES))))
-    request_cancel(session=session, job_ids=job_ids, message=f"canceled while queued: its API key {key.id} was revoked")
+    request_cancel(session=session, job_ids=job_ids)  # (the ending names the revoke: voxe_service.jobs.finish_jobs)
     return len(job_ids)
 
 

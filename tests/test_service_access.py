@@ -342,6 +342,40 @@ def test_revoking_a_key_cancels_its_unfinished_jobs(auth_client, mic_zip, capsys
 
 
 @BOTH_DATABASES
+def test_a_running_job_canceled_by_revoking_its_key_ends_naming_the_revoke(auth_client, mic_zip):
+    """revoke-key flags a running job canceled and its run ends it at its next cancel check: it had ended "canceled
+    during edit", its webhook's canceled event saying the same, with nothing of the revoke (a job its owner canceled
+    reads alike)."""
+    from sqlalchemy import select
+
+    from api import admin
+    from voxe_service.db import session_scope
+    from voxe_service.models import RUNNING, Job, JobEvent
+    from worker import runtime
+
+    key_id, token = _create_key("leaving")
+    _, other = _create_key("staying")
+    ids = []
+    for owner in (token, other):
+        scene = _upload(auth_client, mic_zip, bearer(owner)).json()
+        ids.append(auth_client.post("/v1/jobs", json={"scene_id": scene["id"], **JOB}, headers=bearer(owner)).json()["id"])
+    with session_scope() as session:
+        for job_id in ids:
+            session.get(Job, job_id).state, session.get(Job, job_id).stage = RUNNING, "edit"
+    assert admin.main(["revoke-key", key_id]) == 0
+    assert auth_client.post(f"/v1/jobs/{ids[1]}/cancel", headers=bearer(other)).json()["cancel_requested"]
+    for job_id in ids:  # as the worker's run ends it (worker.tasks._end_job)
+        assert runtime.finish_job(job_id, "canceled", message="canceled during edit")
+    with session_scope() as session:
+        revoked, canceled = (session.get(Job, job_id) for job_id in ids)
+        said = f"canceled during edit: its API key {key_id} was revoked"
+        assert (revoked.state, revoked.message) == ("canceled", said)
+        assert session.scalars(select(JobEvent.detail).where(JobEvent.job_id == ids[0],
+                                                             JobEvent.kind == "canceled")).all() == [said]
+        assert (canceled.state, canceled.message) == ("canceled", "canceled during edit")  # its owner's own cancel
+
+
+@BOTH_DATABASES
 def test_a_key_revoked_while_its_request_is_handled_records_nothing(auth_client, mic_zip, monkeypatch,
                                                                     root):  # noqa: F811
     """Revoked after the request was authenticated (an upload is unpacked for minutes), before it recorded its job or

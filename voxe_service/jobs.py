@@ -15,7 +15,7 @@ from sqlalchemy import delete, event, func, select, update
 from sqlalchemy.orm import Session, SessionTransaction
 
 from voxe_service import webhooks
-from voxe_service.models import CANCELED, TERMINAL_STATES, Artifact, Job, JobEvent, utcnow
+from voxe_service.models import CANCELED, TERMINAL_STATES, ApiKey, Artifact, Job, JobEvent, utcnow
 from voxe_service.settings import Settings
 from voxe_service.storage import get_storage, job_key
 
@@ -61,17 +61,34 @@ def finish_jobs(session: Session, job_ids: Iterable[str], state: str, *, message
     if not ids:
         return []
     now = utcnow()
-    changed = session.execute(
-        update(Job).where(Job.id.in_(ids), Job.state.not_in(TERMINAL_STATES), *where)
-        .values(state=state, finished_at=now, updated_at=now, eta_seconds=None, message=message, error=error,
-                run_token=None, run_lease_until=None)
-        .returning(Job.id, Job.stage)
-    ).all()
-    for job_id, stage in changed:
+    changed = []
+    for message, some in _naming_a_revoke(session, ids, state, message).items():
+        changed += session.execute(
+            update(Job).where(Job.id.in_(some), Job.state.not_in(TERMINAL_STATES), *where)
+            .values(state=state, finished_at=now, updated_at=now, eta_seconds=None, message=message, error=error,
+                    run_token=None, run_lease_until=None)
+            .returning(Job.id, Job.stage, Job.message)
+        ).all()
+    for job_id, stage, message in changed:
         record_event(session, job_id, state, stage=stage, detail=error or message)
         if state == CANCELED:
             _discard_once_committed(session, job_id, _withdraw_unfinished_stage_artifacts(session, job_id), settings)
-    return [job_id for job_id, _ in changed]
+    return [job_id for job_id, _, _ in changed]
+
+
+def _naming_a_revoke(session: Session, ids: list[str], state: str, message: str | None) -> dict[str | None, list[str]]:
+    """{message: job ids}: ``message`` for each job, and for one canceled whose API key is revoked ``message``
+    naming the revoke. ``revoke-key`` flags a running job canceled, and its run or the reaper ends it: it had ended
+    "canceled during edit", its webhook's receiver left to think someone had canceled it."""
+    if state != CANCELED or message is None:
+        return {message: ids}
+    revoked = dict(session.execute(select(Job.id, ApiKey.id).join(ApiKey, ApiKey.id == Job.owner_key_id)
+                                   .where(Job.id.in_(ids), ApiKey.revoked_at.is_not(None))).all())
+    messages: dict[str | None, list[str]] = {}
+    for job_id in ids:
+        said = message if job_id not in revoked else f"{message}: its API key {revoked[job_id]} was revoked"
+        messages.setdefault(said, []).append(job_id)
+    return messages
 
 
 def _withdraw_unfinished_stage_artifacts(session: Session, job_id: str) -> list[str]:

@@ -329,8 +329,8 @@ def request_cancel(*, session: Session, job_ids: list[str], message: str = "canc
     # (a job the reaper re-queued from a stage its dead worker had begun: that stage's outputs are withdrawn)
     canceled = finish_jobs(session, job_ids, CANCELED, message=message, where=[Job.state == QUEUED])
     for job in session.scalars(select(Job).where(Job.id.in_(canceled))).all():
-        finish_jobs(session, evaluations_waiting_on(session, job), FAILED,
-                    error=f"evaluate: source job {job.id} {CANCELED}: {message}")
+        finish_jobs(session, evaluations_waiting_on(session, job), FAILED,  # (its message names a revoke)
+                    error=f"evaluate: source job {job.id} {CANCELED}: {job.message}")
     session.commit()
 
 
