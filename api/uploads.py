@@ -568,11 +568,11 @@ def check_dataset(root: Path, staging: Path, downsample: int) -> tuple[str, int,
     try:
         fmt = detect_format(root)
         try:
-            load_scene(root, "train", downsample=downsample, max_images=1, confine_paths=True)
+            load_scene(root, "train", downsample=downsample, max_images=1, confine_paths=True, pixels=False)
         except DatasetError as exc:
             if "smaller than downsample" not in str(exc):
                 raise
-            load_scene(root, "train", downsample=1, max_images=1, confine_paths=True)
+            load_scene(root, "train", downsample=1, max_images=1, confine_paths=True, pixels=False)
         if fmt == "colmap":
             json_path, meta = colmap_transforms(root)
         else:

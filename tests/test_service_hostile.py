@@ -13,6 +13,7 @@ import struct
 import zipfile
 from pathlib import Path
 
+import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 from hypothesis import HealthCheck, given, settings
@@ -289,6 +290,40 @@ def test_an_image_whose_nfd_spelling_is_too_long_a_name_is_found_by_its_nfc_one(
                        "transform_matrix": [[1, 0, 0, i], [0, 1, 0, 0], [0, 0, 1, 4], [0, 0, 0, 1]]})
     (capture / "transforms.json").write_text(json.dumps({"fl_x": 8.0, "frames": frames}))
     assert check_dataset(capture, tmp_path, downsample=1)[:4] == ("instant_ngp", 2, 8, 6)
+
+
+@pytest.mark.parametrize("suffix, mode, size", [(".jpg", "RGB", (3000, 2000)), (".png", "RGBA", (1000, 800))])
+def test_the_upload_check_decodes_its_first_image_without_float_copies(tmp_path, suffix, mode, size):
+    """The check's decode of the first image had held it as float32 at full size (then premultiplied, downsampled):
+    1.2 GB for a 50-megapixel JPEG, 1.6 GB for such an RGBA PNG, uploads VOXE_MAX_IMAGE_PIXELS lets in. It only
+    looks for what would refuse the image, so it now holds Pillow's 8-bit decode (a JPEG's at 1/8 by its DCT
+    scaling), and answers as before: a damaged image is still refused."""
+    import tracemalloc
+
+    from api.uploads import UploadError, check_dataset
+
+    capture = tmp_path / "capture"
+    (capture / "images").mkdir(parents=True)
+    channels = len(mode)
+    pixels = np.random.default_rng(0).integers(0, 256, (size[1], size[0], channels), dtype=np.uint8)
+    Image.fromarray(pixels, mode).save(capture / "images" / f"0{suffix}")
+    Image.new(mode, size).save(capture / "images" / f"1{suffix}")
+    frames = [{"file_path": f"images/{i}{suffix}", "transform_matrix": [[1, 0, 0, i], [0, 1, 0, 0], [0, 0, 1, 4],
+                                                                       [0, 0, 0, 1]]} for i in range(2)]
+    (capture / "transforms.json").write_text(json.dumps({"fl_x": 800.0, "frames": frames}))
+    tracemalloc.start()
+    try:
+        answer = check_dataset(capture, tmp_path, downsample=8)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert answer == ("instant_ngp", 2, *size, ["all"])
+    assert peak < pixels.size, peak / pixels.size  # a float32 copy is 4 bytes a sample
+    data = (capture / "images" / f"0{suffix}").read_bytes()
+    (capture / "images" / f"0{suffix}").write_bytes(data[: len(data) // 2])
+    with pytest.raises(UploadError, match=r"frame 0 \('images/0\.(jpg|png)'\): cannot read image 0\.(jpg|png) \(not an "
+                                          r"image or damaged\): image file is truncated"):
+        check_dataset(capture, tmp_path, downsample=8)
 
 
 def test_entries_each_under_the_ratio_floor_are_still_a_bomb_together(tmp_path):

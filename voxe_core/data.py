@@ -166,6 +166,7 @@ def load_scene(
     holdout_every: int | None = None,
     confine_paths: bool = False,
     resample: str = "bilinear",
+    pixels: bool = True,
 ) -> Scene:
     """Load one split of a dataset folder.
 
@@ -181,6 +182,8 @@ def load_scene(
     frames of the split. Frame indices in errors are positions in the json's ``frames``.
     ``confine_paths``: refuse a ``file_path`` that leads outside ``root`` (absolute, or up
     through ``..``), so an untrusted upload cannot read other files on the machine.
+    ``pixels=False`` (the upload check) decodes each kept image only to find what would refuse it (``_check_image``),
+    keeping none: ``images`` is (N, H, W, 0). Its float copies had held a 50-megapixel upload's 1.2 GB or more.
     """
     if not isinstance(downsample, int) or downsample < 1:
         raise ValueError(f"downsample must be a positive integer, got {downsample!r}")
@@ -261,22 +264,23 @@ def load_scene(
 
     images, alphas, size, orientations = None, None, None, []
     for slot, i in enumerate(keep):
-        arr, image_path, orientation = _read_image(root, paths[i], where, i)
+        arr, (w, h), image_path, orientation = _read_image(root, paths[i], where, i, downsample, pixels)
         orientations.append(orientation)
-        h, w = arr.shape[:2]
         _check_stated_size(per_frame[i], w, h, image_path, where, i)
         if size is None:
             size, first = (w, h), i
             if w < downsample or h < downsample:
                 raise where(f"image {w}x{h} is smaller than downsample {downsample}", i, image_path)
             hd, wd = h // downsample, w // downsample
-            images = torch.empty(len(keep), hd, wd, 3)
+            images = torch.empty(len(keep), hd, wd, 3 if pixels else 0)
         elif (w, h) != size:
             raise where(
                 f"image size {w}x{h} differs from frame {first} ({paths[first]!r}) size {size[0]}x{size[1]}; "
                 f"all images of a split must share one size{quarter_turn_hint(image_path, w, h, *size)}", i,
                 image_path,
             )
+        if arr is None:
+            continue
         rgb, alpha = _composite_downsampled(arr, downsample, resample)
         images[slot] = torch.from_numpy(rgb)
         if alpha is not None:
@@ -619,14 +623,9 @@ def image_pixels(image: Image.Image, alpha: bool = True) -> np.ndarray:
     8-bit image cannot tell them apart (an exact match would need a 16-bit RGB decode, which Pillow lacks). Whether
     it is 16-bit shows only before the image loads.
     """
-    if image.mode == "F":
-        raise PixelScaleError("holds floating-point pixels (Pillow mode F), whose scale the file does not record: "
-                              "save it with 8 or 16 bits per channel")
+    _check_pixel_scale(image)
     if image.mode in _SIXTEEN_BIT_MODES:
         values = np.asarray(image)
-        if values.size and not (values.min() >= 0 and values.max() <= 65535):
-            raise PixelScaleError(f"holds 32-bit values from {values.min()} to {values.max()} (Pillow mode "
-                                  f"{image.mode}); only 8- and 16-bit images (0..65535) are read")
         grey = np.repeat((values.astype(np.float32) / 65535.0)[..., None], 3, axis=2)
         key = image.info.get("transparency")
         if alpha and isinstance(key, int):
@@ -642,17 +641,41 @@ def image_pixels(image: Image.Image, alpha: bool = True) -> np.ndarray:
     return pixels
 
 
-def _read_image(root: Path, file_path: str, where: _Where, frame: int) -> tuple[np.ndarray, Path, int | None]:
-    """(H, W, 3 or 4) float32 in [0, 1] (``image_pixels``) as stored, its path and its EXIF orientation
-    (``display_up``); a DatasetError naming the file and frame for an image that is missing, damaged, or of a scale
-    it does not record."""
+def _check_pixel_scale(image: Image.Image) -> None:
+    """``PixelScaleError`` for pixels whose scale to [0, 1] the file does not record (``image_pixels``)."""
+    if image.mode == "F":
+        raise PixelScaleError("holds floating-point pixels (Pillow mode F), whose scale the file does not record: "
+                              "save it with 8 or 16 bits per channel")
+    if image.mode in _SIXTEEN_BIT_MODES:
+        low, high = image.getextrema()
+        if not (low >= 0 and high <= 65535):
+            raise PixelScaleError(f"holds 32-bit values from {low} to {high} (Pillow mode {image.mode}); only 8- and "
+                                  "16-bit images (0..65535) are read")
+
+
+def _check_image(image: Image.Image, factor: int = 1) -> None:
+    """Decode ``image`` to find what ``image_pixels`` would refuse (damaged data, a scale not recorded) holding no
+    more than Pillow's own decode, a JPEG's reduced up to ``factor`` times (up to 8) by its DCT scaling (``draft``)."""
+    if factor > 1 and min(image.size) >= factor:
+        image.draft(None, (image.width // factor, image.height // factor))
+    image.load()
+    _check_pixel_scale(image)
+
+
+def _read_image(root: Path, file_path: str, where: _Where, frame: int, factor: int = 1,
+                pixels: bool = True) -> tuple[np.ndarray | None, tuple[int, int], Path, int | None]:
+    """(H, W, 3 or 4) float32 in [0, 1] (``image_pixels``) as stored (None where not ``pixels``: ``_check_image``
+    at ``factor``), its size (W, H), its path and its EXIF orientation (``display_up``); a DatasetError naming the
+    file and frame for an image that is missing, damaged, or of a scale it does not record."""
     path = find_image(root, file_path)
     if path is None:
         candidates = image_candidates(root, file_path)
         raise where("image not found (tried " + ", ".join(str(p) for p in candidates) + ")", frame, candidates[0])
     try:
         with Image.open(path) as im:
-            return image_pixels(im), path, _exif_orientation(im)
+            size = im.size  # (as stored: a JPEG's draft reduces it)
+            arr = image_pixels(im) if pixels else _check_image(im, factor)
+            return arr, size, path, _exif_orientation(im)
     except PixelScaleError as e:
         raise where(f"image {path.name} {e}", frame, path) from None
     except Image.DecompressionBombError as e:
