@@ -410,7 +410,10 @@ class SceneOut(BaseModel):
     image_count: int
     width: int
     height: int
-    splits: list[str]
+    splits: list[str] = Field(description="a NeRF-synthetic dataset's splits that load: train, and val or test where "
+                                          "its transforms_val.json or transforms_test.json loads with its first image "
+                                          "(one that does not is stored unlisted: jobs fit train); all for the other "
+                                          "formats; train and test for a mesh's rendered views")
     backbone: Literal[presets.BACKBONE_KINDS] | None = Field(
         description="what reconstruction backbone auto means for this scene, decided by its processing from all its "
         "training images (relu_field: an object on a transparent background; scene: opaque photos); null while "

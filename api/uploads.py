@@ -583,10 +583,23 @@ def check_dataset(root: Path, staging: Path, downsample: int) -> tuple[str, int,
     frames = meta["frames"]
     width, height = _check_frame_images(root, json_path.relative_to(root).as_posix(), frames, staging)
     if fmt == "nerf_synthetic":
-        splits = [s for s in ("train", "val", "test") if (root / f"transforms_{s}.json").is_file()]
+        splits = ["train"] + [s for s in ("val", "test") if _split_loads(root, s)]
     else:
         splits = ["all"]
     return fmt, len(frames), width, height, splits
+
+
+def _split_loads(root: Path, split: str) -> bool:
+    """Whether the NeRF-synthetic dataset's ``transforms_<split>.json`` loads (its first image decoded): one that does
+    not (damaged, naming images not sent) had been listed in the scene's splits all the same. Jobs fit the train split
+    alone, so such a file is left unlisted, not refused."""
+    if not (root / f"transforms_{split}.json").is_file():
+        return False
+    try:
+        load_scene(root, split, max_images=1, confine_paths=True, pixels=False)
+    except DatasetError:
+        return False
+    return True
 
 
 _HEIF = re.compile(rb"(?s).{4}ftyp(hei[cmsx]|hev[cmsx]|mif1|msf1)")  # its file type box: size, "ftyp", brand

@@ -292,6 +292,25 @@ def test_an_image_whose_nfd_spelling_is_too_long_a_name_is_found_by_its_nfc_one(
     assert check_dataset(capture, tmp_path, downsample=1)[:4] == ("instant_ngp", 2, 8, 6)
 
 
+def test_a_split_whose_json_does_not_load_is_not_listed(tmp_path):
+    """A damaged transforms_val.json (or a transforms_test.json naming images not sent) had been listed in the scene's
+    splits all the same; now only the splits that load are (train, which jobs fit, is checked in full)."""
+    from api.uploads import check_dataset
+
+    capture = tmp_path / "capture"
+    (capture / "train").mkdir(parents=True)
+    for split in ("train", "val", "test"):
+        Image.new("RGB", (8, 6)).save(capture / "train" / f"{split}.png")
+        frames = [{"file_path": f"./train/{split}", "transform_matrix": [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 4],
+                                                                        [0, 0, 0, 1]]}]
+        (capture / f"transforms_{split}.json").write_text(json.dumps({"camera_angle_x": 0.69, "frames": frames}))
+    assert check_dataset(capture, tmp_path, downsample=1)[4] == ["train", "val", "test"]
+    (capture / "transforms_val.json").write_text('{"camera_angle_x": 0.69, "frames": [')
+    assert check_dataset(capture, tmp_path, downsample=1)[4] == ["train", "test"]
+    (capture / "train" / "test.png").unlink()
+    assert check_dataset(capture, tmp_path, downsample=1)[4] == ["train"]
+
+
 @pytest.mark.parametrize("suffix, mode, size", [(".jpg", "RGB", (3000, 2000)), (".png", "RGBA", (1000, 800))])
 def test_the_upload_check_decodes_its_first_image_without_float_copies(tmp_path, suffix, mode, size):
     """The check's decode of the first image had held it as float32 at full size (then premultiplied, downsampled):
