@@ -20,6 +20,7 @@ from starlette.requests import HTTPConnection
 from api import http_semantics
 from voxe_service.db import run_migrations, sync_clock
 from voxe_service.settings import Settings, get_settings, model_label
+from voxe_service.webhooks import shorter
 
 log = logging.getLogger("voxe.api")
 
@@ -233,17 +234,19 @@ def internal_error(request, _exc) -> PlainTextResponse:
     return PlainTextResponse("Internal Server Error", 500, headers=headers)
 
 
-def _json_safe(value):
+def _json_safe(value, most: int | None = None):
     """JSON-encodable errors: non-finite floats (a body may send NaN or Infinity) become their names, and strings
-    holding lone surrogates (JSON may escape "\\ud800"; UTF-8 cannot encode it) their backslash escapes."""
+    holding lone surrogates (JSON may escape "\\ud800"; UTF-8 cannot encode it) their backslash escapes. ``most``:
+    strings (an object's names too) cut to that many characters (``shorter``)."""
     if isinstance(value, float) and not math.isfinite(value):
         return str(value)
     if isinstance(value, str):
+        value = value if most is None else shorter(value, most)
         return value.encode("utf-8", "backslashreplace").decode("utf-8")
     if isinstance(value, dict):
-        return {k: _json_safe(v) for k, v in value.items()}
+        return {(k if most is None else shorter(k, most)): _json_safe(v, most) for k, v in value.items()}
     if isinstance(value, list):
-        return [_json_safe(v) for v in value]
+        return [_json_safe(v, most) for v in value]
     return value
 
 
@@ -252,7 +255,10 @@ async def validation_error(request, exc: RequestValidationError) -> JSONResponse
     offending input it echoes."""
     if (malformed := http_semantics.malformed_body(request, exc)) is not None:
         return malformed
-    return JSONResponse(status_code=422, content={"detail": _json_safe(jsonable_encoder(exc.errors()))})
+    # The input and its place as the client sent them, cut: a query value of any length had been echoed whole
+    errors = [{**error, **{key: _json_safe(error[key], http_semantics.ID_SHOWN) for key in ("loc", "input")
+                           if key in error}} for error in jsonable_encoder(exc.errors())]
+    return JSONResponse(status_code=422, content={"detail": _json_safe(errors)})
 
 
 def __getattr__(name: str):  # ``uvicorn api.main:app`` builds the app on first access

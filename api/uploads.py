@@ -50,6 +50,7 @@ from typing import BinaryIO
 
 from PIL import Image
 
+from api.http_semantics import ID_SHOWN, listed
 from voxe_core.data import (DatasetError, colmap_transforms, detect_format, find_image, image_candidates,
                             is_dataset_folder, load_scene, quarter_turn_hint)
 from voxe_core.constants import TEXTURE_SUFFIXES
@@ -132,15 +133,16 @@ class StagedUpload:
 def safe_relative(name: str) -> PurePosixPath:
     """The relative path of an archive entry or uploaded file name; UploadError on anything escaping."""
     raw = name.replace("\\", "/")
+    refused = f"refused entry {listed([name], width=ID_SHOWN)}"  # (a zip's name may hold 64 kB)
     if raw.startswith("/") or re.match(r"^[A-Za-z]:", raw):
-        raise UploadError(f"refused entry {name!r}: absolute paths are not allowed")
+        raise UploadError(f"{refused}: absolute paths are not allowed")
     parts = [p for p in raw.split("/") if p not in ("", ".")]
     if any(p == ".." for p in parts):
-        raise UploadError(f"refused entry {name!r}: '..' path components are not allowed")
+        raise UploadError(f"{refused}: '..' path components are not allowed")
     if not parts:
-        raise UploadError(f"refused entry {name!r}: empty path")
+        raise UploadError(f"{refused}: empty path")
     if any("\x00" in p for p in parts):
-        raise UploadError(f"refused entry {name!r}: NUL in path")
+        raise UploadError(f"{refused}: NUL in path")
     return PurePosixPath(*parts)
 
 
@@ -199,8 +201,8 @@ class _Budget:
         """The entry's ratio (``written`` from ``compressed``), and the archive's over every entry so far: many
         entries each under the floor had written 256 MiB from a 267 kB upload."""
         if written > _RATIO_FLOOR and written > self.max_ratio * max(compressed, 1):
-            raise UploadError(f"refused entry {name!r}: it inflates more than {self.max_ratio:g} times the "
-                              f"{compressed} compressed bytes read so far (a zip bomb?; "
+            raise UploadError(f"refused entry {listed([name], width=ID_SHOWN)}: it inflates more than "
+                              f"{self.max_ratio:g} times the {compressed} compressed bytes read so far (a zip bomb?; "
                               "VOXE_MAX_COMPRESSION_RATIO)", 413)
         read = self.compressed + compressed
         if self.bytes > _RATIO_FLOOR and self.bytes > self.max_ratio * max(read, 1):
@@ -315,19 +317,20 @@ def extract_zip(source: BinaryIO, dest: Path, budget: _Budget) -> None:
         entries, seen, encoding = [], {}, _legacy_encoding(archive.infolist())
         for info in archive.infolist():
             info.filename = _entry_name(info, encoding)  # (zipfile checks the local header against ``orig_filename``)
-            path = safe_relative(info.filename)
+            path, entry = safe_relative(info.filename), listed([info.filename], width=ID_SHOWN)
             if stat.S_ISLNK(info.external_attr >> 16):
-                raise UploadError(f"refused entry {info.filename!r}: symbolic links are not allowed")
+                raise UploadError(f"refused entry {entry}: symbolic links are not allowed")
             if _is_folder(info) or ignored(path):
                 continue
             if info.flag_bits & 0x1:
-                raise UploadError(f"refused entry {info.filename!r}: encrypted zip entries are not supported")
+                raise UploadError(f"refused entry {entry}: encrypted zip entries are not supported")
             if path in seen:
-                raise UploadError(f"duplicate entry {info.filename!r} in the archive (same path as {seen[path]!r})")
-            seen[path] = info.filename
+                raise UploadError(f"duplicate entry {entry} in the archive (same path as {seen[path]})")
+            seen[path] = entry
             budget.add_file()
             entries.append((info, path))
         for info, path in entries:
+            entry = listed([info.filename], width=ID_SHOWN)
             try:
                 start = reader.consumed
                 with archive.open(info) as member:
@@ -336,14 +339,14 @@ def extract_zip(source: BinaryIO, dest: Path, budget: _Budget) -> None:
             except UploadError:
                 raise
             except FileExistsError:
-                raise UploadError(f"entry {info.filename!r} collides with another entry's path") from None
+                raise UploadError(f"entry {entry} collides with another entry's path") from None
             except (zlib.error, lzma.LZMAError) as exc:  # (a damaged stream: neither is an OSError, a 500 had been)
-                raise UploadError(f"cannot extract {info.filename!r}: its compressed data is damaged ({exc})") from None
+                raise UploadError(f"cannot extract {entry}: its compressed data is damaged ({exc})") from None
             except OSError as exc:  # its text names the staging folder's path on this machine: its reason alone
-                raise UploadError(f"cannot extract {info.filename!r}: {exc.strerror or exc}") from None
+                raise UploadError(f"cannot extract {entry}: {exc.strerror or exc}") from None
             except (zipfile.BadZipFile, zipfile.LargeZipFile, EOFError, NotImplementedError, ValueError,
                     RuntimeError) as exc:
-                raise UploadError(f"cannot extract {info.filename!r}: {exc}") from None
+                raise UploadError(f"cannot extract {entry}: {exc}") from None
 
 
 def save_files(files: list[tuple[str, BinaryIO]], dest: Path, budget: _Budget) -> None:
@@ -353,12 +356,13 @@ def save_files(files: list[tuple[str, BinaryIO]], dest: Path, budget: _Budget) -
         if ignored(path):
             continue
         budget.add_file()
+        shown = listed([name], width=ID_SHOWN)
         try:
             _copy(handle, dest / path, budget)
         except FileExistsError:
-            raise UploadError(f"file {name!r} uploaded twice (or collides with another file's path)") from None
+            raise UploadError(f"file {shown} uploaded twice (or collides with another file's path)") from None
         except OSError as exc:
-            raise UploadError(f"cannot store file {name!r}: {exc.strerror or exc}") from None
+            raise UploadError(f"cannot store file {shown}: {exc.strerror or exc}") from None
 
 
 def dataset_root(folder: Path) -> Path:
@@ -458,7 +462,7 @@ def pack_mesh_upload(root: Path, dest: Path, shading: str = "auto", up_axis: str
     meshes = [p for p in files if p.suffix.lower() in MESH_INPUT_SUFFIXES]
     if not meshes:
         return None
-    names = lambda paths: ", ".join(repr(p.relative_to(root).as_posix()) for p in paths)  # noqa: E731
+    names = lambda paths: listed([p.relative_to(root).as_posix() for p in paths], width=ID_SHOWN)  # noqa: E731
     if len(meshes) > 1:
         raise UploadError(f"the upload holds several meshes ({names(meshes)}); send one")
     mesh, library = meshes[0], None
@@ -538,8 +542,8 @@ def check_image_pixels(folder: Path, max_pixels: int) -> None:
             continue  # not an image (the json, a readme); the loader reports referenced images it cannot read
         if width is None or width * height > max_pixels:
             size = f"{width}x{height} ({width * height} pixels)" if width is not None else "huge"
-            raise UploadError(f"image {name!r} is {size}, over the limit of {max_pixels} pixels per image "
-                              "(a decompression bomb?; VOXE_MAX_IMAGE_PIXELS)", 413)
+            raise UploadError(f"image {listed([name], width=ID_SHOWN)} is {size}, over the limit of {max_pixels} "
+                              "pixels per image (a decompression bomb?; VOXE_MAX_IMAGE_PIXELS)", 413)
 
 
 def _relative_message(message: str, staging: Path) -> str:
@@ -561,7 +565,7 @@ def check_dataset(root: Path, staging: Path, downsample: int) -> tuple[str, int,
     """
     if not is_dataset_folder(root):
         held = sorted(p.relative_to(root).as_posix() for p in root.rglob("*") if p.is_file())
-        listing = ", ".join(map(repr, held[:5])) + (f" and {len(held) - 5} more" if len(held) > 5 else "")
+        listing = listed(held, width=ID_SHOWN)
         raise UploadError(f"the upload is neither a dataset nor a mesh (it holds {listing or 'no file'}): send a "
                           "dataset folder or .zip (transforms_train.json: NeRF-synthetic; transforms.json: instant-ngp "
                           "/ nerfstudio; a COLMAP model sparse/0/ or sparse/ beside images/), or one mesh (.obj, .ply)")
