@@ -514,7 +514,8 @@ class JobEventOut(BaseModel):
     id: int
     kind: str = Field(description="stage_started, stage_completed, checkpoint, resumed, requeued, warning (a "
                                   "stage's result to look at, an edit's regulariser a constant reconstruction switches "
-                                  "off, or a start over from a checkpoint it could not go on from: detail says "
+                                  "off, a start over from a checkpoint it could not go on from, or a mesh scene's "
+                                  "ingest loading the mesh without the .mtl or texture its file names: detail says "
                                   "what), artifact, preview, succeeded, failed or canceled")
     stage: str | None
     iteration: int | None = Field(description="checkpoint: the iteration it holds; resumed: where the stage went on")

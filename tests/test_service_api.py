@@ -3320,3 +3320,22 @@ def test_an_empty_scene_id_filter_is_a_422_naming_it(client):
     assert [(error["loc"], error["type"]) for error in refused.json()["detail"]] == [(["query", "scene_id"],
                                                                                      "string_too_short")]
     assert client.get("/v1/jobs").json()["total"] == 1
+
+
+def test_a_mesh_loaded_without_the_mtl_its_obj_names_says_so_on_the_jobs_waiting_for_it(client, root, monkeypatch):
+    """An OBJ whose mtllib names an .mtl not sent uploads (``voxe submit`` sends it so, warning) and loads grey: that
+    had been said in the worker's log alone. The jobs waiting for the scene now get a ``warning`` event saying it."""
+    from voxe_service import datasets
+
+    monkeypatch.setattr(datasets, "MESH_VIEWS", 2)
+    monkeypatch.setattr(datasets, "MESH_VIEW_SIZE", 32)
+    obj = ("mtllib model.mtl\nv 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nv 0 0 1\nusemtl red\nf 1 2 3\nf 1 3 4\nf 1 2 5\n")
+    response = client.post("/v1/scenes", files=[("files", ("cube/m.obj", obj.encode(), "text/plain"))])
+    assert response.status_code == 201, response.text
+    scene = response.json()
+    job = client.post("/v1/jobs", json={"scene_id": scene["id"], **JOB}).json()
+    assert ingest(scene["id"]) == {"scene_id": scene["id"], "state": "ready"}
+    events = client.get(f"/v1/jobs/{job['id']}/events").json()
+    warnings = [(e["stage"], e["detail"]) for e in events if e["kind"] == "warning"]
+    assert warnings == [("ingest", "m.obj: the material library its mtllib names, 'model.mtl', is not found beside "
+                                   "it; the mesh loads without its materials")]

@@ -85,6 +85,11 @@ class MeshError(ValueError):
     """A mesh file that cannot be used; the message names the file and the problem."""
 
 
+class MeshWarning(UserWarning):
+    """What a mesh loads without (the .mtl its mtllib names, the texture its PLY header names): the service's ingest
+    says it on the jobs waiting for the scene."""
+
+
 @dataclass
 class SurfaceMesh:
     """A triangle mesh in the canonical frame with its albedo: a texture over UVs, vertex colours, or one colour."""
@@ -202,11 +207,11 @@ def load_mesh(
         raise MeshError(f"{path.name}: {fault}")
     if library.missing is not None:  # trimesh drops it without a word, the mesh grey
         warnings.warn(f"{path.name}: the material library its mtllib names, {library.missing!r}, is not found beside "
-                      "it; the mesh loads without its materials", stacklevel=2)
+                      "it; the mesh loads without its materials", MeshWarning, stacklevel=2)
     if unread_texture.error is not None:
         warnings.warn(f"{path.name}: the texture its header names (TextureFile) cannot be read "
                       f"({type(unread_texture.error).__name__}: {unread_texture.error}); the mesh loads without it",
-                      stacklevel=2)
+                      MeshWarning, stacklevel=2)
     if texture is None:
         vertices = np.asarray(getattr(loaded, "vertices", np.empty((0, 3))), dtype=np.float64)
         faces = np.asarray(getattr(loaded, "faces", np.empty((0, 3))), dtype=np.int64)

@@ -19,6 +19,7 @@ import os
 import re
 import time
 import uuid
+import warnings
 from datetime import timedelta
 from pathlib import Path
 from typing import NamedTuple
@@ -30,9 +31,10 @@ from sqlalchemy.exc import SQLAlchemyError
 from voxe_core.backbones import detect_backbone
 from voxe_core.constants import TEXTURE_SUFFIXES
 from voxe_core.data import DatasetError, load_scene
-from voxe_core.mesh_input import MESH_INPUT_SUFFIXES, MeshError, load_mesh, shade_mesh, write_mesh_dataset
+from voxe_core.mesh_input import MESH_INPUT_SUFFIXES, MeshError, MeshWarning, load_mesh, shade_mesh, write_mesh_dataset
 from voxe_service import datasets
 from voxe_service.db import DATABASE_UNAVAILABLE, database_outage, session_scope
+from voxe_service.jobs import record_event
 from voxe_service.models import FAILED, PROCESSING, Scene, utcnow
 from voxe_service.queue import (QueueUnavailable, TaskResult, dispatch_job, get_queue, requeue_limit_error,
                                 storage_outage_limit_error)
@@ -68,14 +70,18 @@ def load_stored_mesh(dataset: Path):
     return shade_mesh(mesh, options.get("shading", "auto"))
 
 
-def render_mesh(root: Path) -> None:
-    """Render the mesh kept in ``root/mesh/`` into a NeRF-synthetic dataset in ``root`` (mesh input route (a))."""
+def render_mesh(root: Path) -> list[str]:
+    """Render the mesh kept in ``root/mesh/`` into a NeRF-synthetic dataset in ``root`` (mesh input route (a)); what
+    it loaded without (``MeshWarning``s: an OBJ's .mtl not sent, which had been said in the worker's log alone)."""
     kept = root / datasets.MESH_FOLDER
     try:
-        mesh = load_stored_mesh(root)
+        with warnings.catch_warnings(record=True) as said:
+            warnings.simplefilter("always", MeshWarning)
+            mesh = load_stored_mesh(root)
     except MeshError as exc:  # named as uploaded, without the worker's scratch path (Pillow's messages carry it)
         raise IngestError(f"invalid mesh: {_as_uploaded(_relative_message(exc, kept), kept)}") from None
     write_mesh_dataset(mesh, root, datasets.MESH_VIEWS, datasets.MESH_VIEW_SIZE)
+    return [_as_uploaded(_relative_message(w.message, kept), kept) for w in said if w.category is MeshWarning]
 
 
 def _as_uploaded(message: str, kept: Path) -> str:
@@ -225,6 +231,7 @@ def _ingest(scene_id: str, token: str, upload: StoredObject, interrupted: int, s
     if removed := sweep_unlocked(work, f"{scene_id}-*"):
         log.info("scene %s: removed %d folder(s) its killed ingests left", scene_id, removed)
     values: dict = {}
+    loaded_without: list[str] = []
     with locked_folder(work, f"{scene_id}-") as scratch:
         try:
             archive = fetch(storage, upload, scratch / "archive.zip", f"scene {scene_id}'s upload {upload.key}")
@@ -232,7 +239,7 @@ def _ingest(scene_id: str, token: str, upload: StoredObject, interrupted: int, s
             root = datasets.unpack(archive, scratch / "data")
             if mesh_upload:
                 _still_held(lease)
-                render_mesh(root)
+                loaded_without = render_mesh(root)
             _still_held(lease)
             count, values["backbone"] = decode(root, settings.validation_downsample)
             if mesh_upload:  # the rendered dataset (and the mesh beside it) becomes the scene's archive
@@ -254,7 +261,7 @@ def _ingest(scene_id: str, token: str, upload: StoredObject, interrupted: int, s
                 log.exception("scene %s: ingest failed", scene_id)
             _fail(scene_id, token, reason, storage)
             return {"scene_id": scene_id, "state": "failed"}
-    return _ready(scene_id, token, values, storage, settings, upload.key if mesh_upload else None)
+    return _ready(scene_id, token, values, storage, settings, upload.key if mesh_upload else None, loaded_without)
 
 
 def _still_held(lease: LeaseKeeper) -> None:
@@ -307,15 +314,19 @@ def _fail(scene_id: str, token: str, reason: str, storage: Storage) -> bool:
 
 
 def _ready(scene_id: str, token: str, values: dict, storage: Storage, settings: Settings,
-           replaced_key: str | None) -> TaskResult:
-    """processing -> ready and its waiting jobs sent; a mesh whose rendered views put its key over the upload quota
-    (checked with the key locked, in the transaction that would store the new size) fails instead."""
+           replaced_key: str | None, warnings_said: list[str] = ()) -> TaskResult:
+    """processing -> ready and its waiting jobs sent, each told ``warnings_said`` (a ``warning`` event of stage
+    "ingest"); a mesh whose rendered views put its key over the upload quota (checked with the key locked, in the
+    transaction that would store the new size) fails instead."""
     with session_scope() as session:
         over = "size_bytes" in values and ingest_over_quota(session, scene_id, values["size_bytes"], settings)
         waiting = None if over else mark_ready(session, scene_id, where=[Scene.ingest_token == token], **values)
         if waiting is None:
             session.rollback()
         else:
+            for job in waiting:
+                for text in warnings_said:
+                    record_event(session, job.id, "warning", stage="ingest", detail=text)
             session.commit()
             queue = get_queue()  # the waiting jobs first: should this worker stop before, the reaper sends them
             for job in waiting:
