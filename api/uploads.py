@@ -52,7 +52,7 @@ from PIL import Image
 
 from api.http_semantics import ID_SHOWN, listed
 from voxe_core.data import (DatasetError, colmap_transforms, detect_format, find_image, image_candidates,
-                            is_dataset_folder, load_scene, quarter_turn_hint)
+                            image_not_found, is_dataset_folder, load_scene, quarter_turn_hint)
 from voxe_core.constants import TEXTURE_SUFFIXES
 from voxe_core.mesh_input import (DECIMATE, MAX_MESH_FACES, MESH_FRAMES, MESH_INPUT_SUFFIXES,
                                    referenced_base_name)
@@ -622,7 +622,7 @@ def _check_frame_images(root: Path, json_name: str, frames: list[dict], staging:
     first = None
     for i, frame in enumerate(frames):
         file_path = frame["file_path"]
-        where = f"{json_name} frame {i} ({file_path!r})"
+        where = f"{json_name} frame {i} ({listed([file_path], width=ID_SHOWN)})"
         path = find_image(root, file_path)
         if path is None:
             candidates = image_candidates(root, file_path)
@@ -630,7 +630,7 @@ def _check_frame_images(root: Path, json_name: str, frames: list[dict], staging:
                 candidates[0].is_file()
             except OSError as exc:  # e.g. a name over the file system's length limit
                 raise _invalid(f"{where}: 'file_path' is not a usable path ({exc.strerror})", staging) from None
-            raise _invalid(f"{where}: image not found (tried {', '.join(map(str, candidates))})", staging)
+            raise _invalid(f"{where}: {image_not_found(root, file_path)}", staging)
         try:
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore", Image.DecompressionBombWarning)
@@ -651,8 +651,9 @@ def _check_frame_images(root: Path, json_name: str, frames: list[dict], staging:
             first = (size, file_path)
         elif size != first[0]:
             (w, h), ((fw, fh), first_path) = size, first
-            raise _invalid(f"{where}: image size {w}x{h} differs from frame 0 ({first_path!r}) size {fw}x{fh}; all "
-                           f"images of a split must share one size{quarter_turn_hint(path, w, h, fw, fh)}", staging)
+            raise _invalid(f"{where}: image size {w}x{h} differs from frame 0 ({listed([first_path], width=ID_SHOWN)}) "
+                           f"size {fw}x{fh}; all images of a split must share one "
+                           f"size{quarter_turn_hint(path, w, h, fw, fh)}", staging)
     return first[0]
 
 

@@ -155,7 +155,7 @@ HOSTILE_UPLOADS = {
     "duplicate file_path": (lambda d: _with_json(d, _set(2, "file_path", "train/r_0")), 422,
                             "frame 2 ('train/r_0'): duplicate file_path (same image as frame 0)"),
     "file_path too long": (lambda d: _with_json(d, _set(1, "file_path", "b" * 300)), 422,
-                           "frame 1 ('" + "b" * 300 + "'): 'file_path' is not a usable path (File name too long)"),
+                           "frame 1 ('" + "b" * 100 + "...'): 'file_path' is not a usable path (File name too long)"),
     "focal beyond float": (lambda d: _with_json(d, lambda m: m.update(camera_angle_x=10**400)), 422,
                            "'camera_angle_x' is out of range (10000000000000000000..., 401 digits)"),
     "number of 5000 digits": (lambda d: _with_json_number(d, "camera_angle_x", "1" * 5000), 422,
@@ -834,3 +834,25 @@ def test_a_422_shows_a_long_input_or_entry_name_cut(client, root):  # noqa: F811
     response = client.post("/v1/scenes", files=[("files", ("b" * 3000 + ".txt", b"x", "text/plain"))])
     assert response.json()["detail"] == f"cannot store file '{'b' * 100}...': File name too long"
     assert len(response.text) < 1000
+
+
+@pytest.mark.parametrize("frame", [0, 1])
+def test_a_long_file_path_is_shown_cut_in_the_refusal(tmp_path, frame):
+    """A frame's file_path was echoed whole in its refusal, and again in each path tried: 4,000 characters of
+    'a/' made a 20 kB message (the loader's for frame 0, the upload check's for the others). It is cut now, and a
+    long one's tries are said without it."""
+    from api.uploads import UploadError, check_dataset
+
+    capture = tmp_path / "capture"
+    (capture / "images").mkdir(parents=True)
+    Image.new("RGB", (8, 6)).save(capture / "images" / "0.png")
+    long = "images/" + "a/" * 2000 + "x.png"
+    frames = [{"file_path": name, "transform_matrix": [[1, 0, 0, i], [0, 1, 0, 0], [0, 0, 1, 4], [0, 0, 0, 1]]}
+              for i, name in enumerate(["images/0.png", long])]
+    frames = frames[::-1] if frame == 0 else frames
+    (capture / "transforms.json").write_text(json.dumps({"fl_x": 8.0, "frames": frames}))
+    with pytest.raises(UploadError) as info:
+        check_dataset(capture, tmp_path, downsample=1)
+    assert f"transforms.json frame {frame} ('{long[:60]}" in str(info.value)
+    assert str(info.value).endswith("): image not found (tried as written and with .png, .jpg, .jpeg added)")
+    assert len(str(info.value)) < 300, len(str(info.value))

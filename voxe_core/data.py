@@ -76,6 +76,7 @@ _DISPLAY_UP = {3: (0.0, -1.0, 0.0), 4: (0.0, -1.0, 0.0), 5: (-1.0, 0.0, 0.0), 6:
                7: (1.0, 0.0, 0.0), 8: (1.0, 0.0, 0.0)}
 _STORED_UP = (0.0, 1.0, 0.0)
 _IMPLIED_EXTENSIONS = (".png", ".jpg", ".jpeg")  # tried in turn after a file_path as written (``image_candidates``)
+_PATH_SHOWN = 100  # characters of a frame's file_path a message shows (a json may hold any number)
 
 
 class DatasetError(ValueError):
@@ -121,7 +122,7 @@ class _Where:
         prefix = self.label
         if frame is not None:
             fp = self.frames[frame].get("file_path") if isinstance(self.frames[frame], dict) else None
-            prefix += f" frame {frame}" + (f" ({fp!r})" if fp is not None else "")
+            prefix += f" frame {frame}" + (f" ({_shown(fp, _PATH_SHOWN)})" if fp is not None else "")
         return DatasetError(f"{prefix}: {message}", path or self.json_path, frame)
 
 
@@ -275,9 +276,9 @@ def load_scene(
             images = torch.empty(len(keep), hd, wd, 3 if pixels else 0)
         elif (w, h) != size:
             raise where(
-                f"image size {w}x{h} differs from frame {first} ({paths[first]!r}) size {size[0]}x{size[1]}; "
-                f"all images of a split must share one size{quarter_turn_hint(image_path, w, h, *size)}", i,
-                image_path,
+                f"image size {w}x{h} differs from frame {first} ({_shown(paths[first], _PATH_SHOWN)}) size "
+                f"{size[0]}x{size[1]}; all images of a split must share one "
+                f"size{quarter_turn_hint(image_path, w, h, *size)}", i, image_path,
             )
         if arr is None:
             continue
@@ -592,6 +593,14 @@ def image_candidates(root: Path, file_path: str) -> list[Path]:
     return [root / (spelling + extension) for spelling in spellings for extension in ("", *_IMPLIED_EXTENSIONS)]
 
 
+def image_not_found(root: Path, file_path: str) -> str:
+    """The refusal of a frame whose image ``find_image`` does not find, naming the paths tried where its
+    ``file_path`` is short enough to show: a longer one had been echoed whole in each of up to 12 of them."""
+    if len(file_path) > _PATH_SHOWN:
+        return f"image not found (tried as written and with {', '.join(_IMPLIED_EXTENSIONS)} added)"
+    return "image not found (tried " + ", ".join(str(p) for p in image_candidates(root, file_path)) + ")"
+
+
 def find_image(root: Path, file_path: str) -> Path | None:
     """The file a frame's ``file_path`` reads (None: no candidate is there); a candidate whose name the file system
     cannot hold is none (a name's NFD spelling may pass the length limit its NFC one is within). The loader's rule,
@@ -670,7 +679,7 @@ def _read_image(root: Path, file_path: str, where: _Where, frame: int, factor: i
     path = find_image(root, file_path)
     if path is None:
         candidates = image_candidates(root, file_path)
-        raise where("image not found (tried " + ", ".join(str(p) for p in candidates) + ")", frame, candidates[0])
+        raise where(image_not_found(root, file_path), frame, candidates[0])
     try:
         with Image.open(path) as im:
             size = im.size  # (as stored: a JPEG's draft reduces it)
