@@ -179,6 +179,44 @@ def test_two_writers_of_one_file_at_once_each_write_a_partial_file_of_their_own(
     assert target.read_text() == "the first, longer text" and [p.name for p in tmp_path.iterdir()] == ["notes.txt"]
 
 
+def test_a_write_removes_the_partial_files_of_writers_killed_mid_write_but_not_a_live_writers(tmp_path):
+    """A run killed mid-write (SIGKILL, out of memory) left its partial file .<stem>.<token>.partial<suffix> for
+    good, one more hidden file each run. The next write of the file removes those of dead writers; a live writer's
+    (its process holding its partial file locked) stays, however long it has been writing, and so does one written
+    just now (it may be a writer's that has made it but not yet locked it)."""
+    import signal
+    import subprocess
+    import time
+
+    target = tmp_path / "grid.safetensors"
+    writer = ("import sys, time\nfrom voxe_core.files import replacing\nwith replacing(sys.argv[1]) as partial:\n"
+              "    partial.write_bytes(b'half a grid')\n    print(partial, flush=True)\n    time.sleep(600)\n")
+    repo = Path(__file__).resolve().parents[1]
+    processes = [subprocess.Popen([sys.executable, "-c", writer, str(target)], cwd=repo, stdout=subprocess.PIPE,
+                                  text=True) for _ in range(4)]
+    try:
+        partials = [Path(process.stdout.readline().strip()) for process in processes]
+        assert all(partial.is_file() for partial in partials)
+        for process in processes[:3]:
+            process.send_signal(signal.SIGKILL)
+            process.wait(timeout=30)
+        long_ago = time.time() - 3600
+        for partial in partials[:2] + partials[3:]:  # written an hour ago: the live writer's too
+            os.utime(partial, (long_ago, long_ago))
+        other = tmp_path / ".grid.0123abcd.partial.png"  # another file's (grid.png) partial file
+        other.write_bytes(b"")
+        os.utime(other, (long_ago, long_ago))
+        with replacing(target) as partial:
+            partial.write_bytes(b"a whole grid")
+        assert target.read_bytes() == b"a whole grid"
+        kept = [target.name, other.name] + [p.name for p in partials[2:]]
+        assert sorted(p.name for p in tmp_path.iterdir()) == sorted(kept)
+    finally:
+        for process in processes:
+            process.kill()
+            process.wait(timeout=30)
+
+
 def test_png_rgba_and_bad_shape(tmp_path):
     rgba = torch.rand(5, 6, 4, generator=torch.Generator().manual_seed(0))
     save_png(tmp_path / "rgba.png", rgba)

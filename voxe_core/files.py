@@ -4,10 +4,13 @@ the final name, nor destroys the one already there."""
 from __future__ import annotations
 
 import errno
+import fcntl
 import hashlib
 import os
+import re
 import secrets
 import stat
+import time
 from collections.abc import Iterator
 from contextlib import contextmanager, suppress
 from pathlib import Path
@@ -17,6 +20,10 @@ SPECIAL_FILES = ((stat.S_ISFIFO, "a FIFO (named pipe)"), (stat.S_ISSOCK, "a sock
 """What a path that is neither a regular file nor a folder is, by its mode."""
 NAME_MAX = 255
 """The longest file name, in bytes, of the filesystems written to (ext4, XFS, Btrfs, tmpfs)."""
+DEAD_PARTIAL_AGE_S = 60.0
+"""How long ago an unlocked partial file must have been written last to be taken for a dead writer's: a writer
+locks its own just after creating it, and safetensors renames its own file in place of it, unlocked, just before
+the block ends (:func:`remove_dead_partials`)."""
 
 
 def unreadable_file(path: str | os.PathLike, kind: str = "a file") -> str | None:
@@ -72,6 +79,39 @@ def partial_path(path: Path, token: str) -> Path:
     return path.with_name(head_that_fits(f".{path.stem}", tail, path.name) + tail)
 
 
+def locked(fd: int) -> bool:
+    """Whether this process now holds the file open at ``fd`` locked, exclusively (flock: a lock of the open file,
+    kept while the writer opens and closes the path itself); False where another holds it or the filesystem has no
+    locks (ENOLCK, EOPNOTSUPP)."""
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        return False
+    return True
+
+
+def remove_dead_partials(target: Path) -> None:
+    """Remove the partial files of ``target`` (:func:`partial_path`) that writers killed mid-write (SIGKILL, out of
+    memory, power loss) left: each killed run had left one more for good. A partial file is a dead writer's when no
+    process holds it locked (:func:`replacing` holds its own) and it was last written :data:`DEAD_PARTIAL_AGE_S`
+    ago. Best effort: a folder that cannot be listed, or a file that cannot be opened or removed, is left."""
+    token = "0" * 8
+    head = partial_path(target, token).name[:-len(f".{token}.partial{target.suffix}")]
+    pattern = re.compile(re.escape(head) + r"\.[0-9a-f]{8}" + re.escape(f".partial{target.suffix}"))
+    names = []
+    with suppress(OSError), os.scandir(target.parent) as entries:
+        names = [entry.name for entry in entries if pattern.fullmatch(entry.name)]
+    for name in names:
+        with suppress(OSError):
+            fd = os.open(target.parent / name, os.O_RDONLY | os.O_NOFOLLOW | os.O_NONBLOCK)  # (a FIFO: not waited on)
+            try:
+                found = os.fstat(fd)
+                if stat.S_ISREG(found.st_mode) and time.time() - found.st_mtime > DEAD_PARTIAL_AGE_S and locked(fd):
+                    os.unlink(target.parent / name)
+            finally:
+                os.close(fd)
+
+
 def take_the_mode_of(target: Path, partial: Path) -> None:
     """Give ``partial`` the permissions of ``target``, the file it is to replace, if there is one (a new file gets the
     umask's: a 0600 file replaced had become readable by all), and its owner where this process may give it (root: a
@@ -96,6 +136,9 @@ def replacing(path: str | os.PathLike) -> Iterator[Path]:
     about that temporary file (a missing folder, no permission) names ``path``, the file the caller asked for.
     A file replaced keeps its permissions, and a symlink stays one, its target replaced (the new file had taken the
     umask's mode, a 0600 file becoming readable by all, and the link had become a file of its own).
+    The partial file is made here and held locked while the block runs, so that a writer killed mid-write is told
+    from a live one: each write first removes the partial files of ``path`` dead writers left
+    (:func:`remove_dead_partials`; none where the filesystem has no locks).
 
     Examples:
         >>> import tempfile
@@ -116,7 +159,11 @@ def replacing(path: str | os.PathLike) -> Iterator[Path]:
     path = Path(path)
     target = Path(os.path.realpath(path))
     partial = partial_path(target, secrets.token_hex(4))
+    fd = None
     try:
+        fd = os.open(partial, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)  # the writer writes into it in place
+        if locked(fd):
+            remove_dead_partials(target)
         yield partial
         take_the_mode_of(target, partial)
         os.replace(partial, target)
@@ -130,3 +177,6 @@ def replacing(path: str | os.PathLike) -> Iterator[Path]:
         except OSError as exc:  # a name too long for any file: none to remove, and its own error had replaced the
             if exc.errno != errno.ENAMETOOLONG:  # one above, which names the file asked for
                 raise
+        finally:
+            if fd is not None:
+                os.close(fd)  # (its lock with it, once the partial file is renamed or removed)
