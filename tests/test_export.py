@@ -435,8 +435,8 @@ def test_an_mp4_whose_encoder_failed_is_an_error_and_leaves_the_earlier_file(tmp
 
 @pytest.mark.parametrize("name", ["a:b.mp4", "http:b.mp4", "a:b.gif"])
 def test_a_video_named_with_a_colon_in_the_working_folder_is_written(tmp_path, monkeypatch, name):
-    """Regression: ffmpeg was given the relative partial name ('.a:b.partial.mp4') and read it as a URL of protocol
-    '.a': the encode failed ("Protocol not found") after the whole render."""
+    """Regression: ffmpeg was given the relative partial name ('.a:b.<token>.partial.mp4') and read it as a URL of
+    protocol '.a': the encode failed ("Protocol not found") after the whole render."""
     monkeypatch.chdir(tmp_path)
     path = write_video(name, gradient_frames(3, 16, 16), fps=10)
     assert str(path) == name and sorted(p.name for p in tmp_path.iterdir()) == [name]

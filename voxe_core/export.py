@@ -217,7 +217,8 @@ class _Mp4Encoder:
     gives the size), its exit status checked: imageio-ffmpeg's writer, used before, never read it, so an encode that
     failed (a full disk: "Error writing trailer: No space left on device") had left a torn MP4 as if written.
     ``shown_as``: the file ``path`` becomes, which its errors name. ffmpeg is given ``path`` absolute: a relative
-    name with a ':' ('.a:b.partial.mp4', of 'a:b.mp4') is one it reads as a protocol's URL ("Protocol not found")."""
+    name with a ':' ('.a:b.<token>.partial.mp4', of 'a:b.mp4') is one it reads as a protocol's URL ("Protocol not
+    found")."""
 
     OUTPUT_OPTIONS = ("-vcodec", "libx264", "-pix_fmt", "yuv420p", "-v", "error", "-colorspace", "smpte170m",
                       "-color_range", "tv", "-crf", "18", "-preset", "medium", "-movflags", "+faststart")
