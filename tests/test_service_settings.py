@@ -279,6 +279,20 @@ def test_folders_under_the_home_folder_are_made_there(fresh_settings, tmp_path):
     assert not (tmp_path / "~").exists()
 
 
+@pytest.mark.parametrize("variable,value", [("VOXE_STORAGE_DIR", "~{user}/voxe"),
+                                            ("VOXE_DATABASE_URL", "sqlite:///~{user}/voxe.db"),
+                                            ("VOXE_BROKER_URL", "sqla+sqlite:///file:~{user}/broker.db?uri=true")])
+def test_a_home_folder_of_a_user_the_machine_does_not_know_is_a_settings_error(fresh_settings, variable, value):
+    """``VOXE_STORAGE_DIR=~nouser/x`` or ``VOXE_DATABASE_URL=sqlite:///~nouser/x.db`` (a user the machine does not
+    know) had stopped the start with "RuntimeError: Could not determine home directory", naming no setting."""
+    value = value.format(user="voxe-no-such-user")
+    fresh_settings.setenv(variable, value)
+    with pytest.raises(SettingsError, match=f"{variable}='.*': " + re.escape("'~voxe-no-such-user' is no home folder "
+                                                                           "this machine knows (no such user); name "
+                                                                           "the folder itself")):
+        get_settings()
+
+
 def test_a_folder_setting_is_read_without_the_spaces_around_it(fresh_settings, tmp_path):
     """VOXE_STORAGE_DIR=' ./var/storage' (pasted, or quoted with a space) had stored every artifact under a folder
     named ' .' of the working directory, and '~/voxe ' under '~/voxe ' (a trailing space in its name)."""

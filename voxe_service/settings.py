@@ -157,7 +157,7 @@ class Settings(BaseSettings):
         spaces around it are not the folder's, as a model's are not its (``' ./var'`` had made a folder named ' .')."""
         if isinstance(value, str) and not (value := value.strip()):
             raise ValueError("must name a folder (unset it for the default)")
-        return Path(value).expanduser() if isinstance(value, str | Path) else value
+        return home_expanded(value) if isinstance(value, str | Path) else value
 
     @field_validator("host")
     @classmethod
@@ -372,7 +372,19 @@ def sqlite_file(url: str | URL) -> Path | None:
         name = unquote(urlsplit(name).path)
     if name in ("", ":memory:") or parsed.query.get("mode") == "memory":
         return None
-    return Path(name).expanduser()
+    return home_expanded(name)
+
+
+def home_expanded(name: str | Path) -> Path:
+    """``name``, its '~' or '~user' the home folder, as a shell reads it; ValueError where the machine knows no such
+    home folder (``~nouser/voxe``, a user it does not know): Path.expanduser's RuntimeError "Could not determine home
+    directory" had stopped the service's start naming no setting."""
+    path = Path(name)
+    try:
+        return path.expanduser()
+    except RuntimeError:
+        raise ValueError(f"{path.parts[0]!r} is no home folder this machine knows (no such user); name the folder "
+                         "itself") from None
 
 
 def _uri_filename(parsed: URL) -> bool:
