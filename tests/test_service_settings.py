@@ -71,7 +71,8 @@ def fresh_settings(monkeypatch):
       for url in ("sqlite://", "sqlite:///:memory:", "sqlite+pysqlite:///:memory:",
                   "sqlite:///file:voxe?mode=memory&cache=shared&uri=true",
                   # SQLite's URI filenames of a private database (accepted; the API had found no tables)
-                  "sqlite:///file::memory:?uri=true", "sqlite:///file:?uri=true")),
+                  "sqlite:///file::memory:?uri=true", "sqlite:///file:?uri=true",
+                  "sqlite:///file:voxe.db?vfs=memdb&uri=true")),
     # a folder, not a file: accepted, the API's start had failed "unable to open database file", naming no setting
     ("VOXE_DATABASE_URL", "sqlite:////tmp", "VOXE_DATABASE_URL='sqlite:////tmp': names the folder '/tmp', not a "
                                            "database file; name a file in it, e.g. sqlite:///./var/voxe.db"),

@@ -370,8 +370,8 @@ def sqlite_file(url: str | URL) -> Path | None:
     name = parsed.database or ""
     if _uri_filename(parsed):
         name = unquote(urlsplit(name).path)
-    if name in ("", ":memory:") or parsed.query.get("mode") == "memory":
-        return None
+    if name in ("", ":memory:") or parsed.query.get("mode") == "memory" or parsed.query.get("vfs") == "memdb":
+        return None  # (the memdb VFS: a database in the memory of the process, as mode=memory)
     return home_expanded(name)
 
 
