@@ -493,6 +493,44 @@ def test_reading_the_database_clock_while_postgresql_is_down_logs_one_traceback_
     assert records[4].getMessage() == "database clock: readings succeed again, after 4 failed in a row"
 
 
+def test_a_process_forked_while_the_database_clock_readings_fail_counts_its_own_from_zero(monkeypatch):
+    """The count of failed readings lives in the module: a Celery pool process forked while its worker's heartbeats
+    failed to read the clock took the worker's count, and logged its own first failure "reading 4 in a row failed",
+    with no traceback. A forked process counts its own from zero."""
+    import types
+
+    from sqlalchemy.exc import OperationalError
+
+    from voxe_service import db
+
+    class Down:
+        dialect = types.SimpleNamespace(name="postgresql")
+
+        def connect(self):
+            raise OperationalError("SELECT clock_timestamp()", {}, Exception("connection refused"))
+
+    monkeypatch.setattr(db._CLOCK_READINGS, "failed", 0)  # (put back after the test)
+    assert [db.sync_clock(Down()) for _ in range(3)] == [None] * 3
+    read, write = os.pipe()
+    pid = os.fork()
+    if pid == 0:  # the forked process: its first reading's log line, sent back
+        try:
+            os.close(read)
+            records = []
+            handler = logging.Handler()
+            handler.emit = records.append
+            db.log.addHandler(handler)
+            db.sync_clock(Down())
+            os.write(write, f"{records[0].getMessage()} | traceback: {records[0].exc_info is not None}".encode())
+        finally:
+            os._exit(0)
+    os.close(write)
+    os.waitpid(pid, 0)
+    with os.fdopen(read) as said:
+        assert said.read() == "database clock: reading failed; the last offset measured stays | traceback: True"
+    assert db._CLOCK_READINGS.failed == 3  # this process's own count goes on
+
+
 def test_a_workers_heartbeats_failing_log_one_traceback_then_a_line_each_and_say_when_they_succeed_again(
         monkeypatch, caplog):
     """With the database down, every heartbeat (5 s apart) had logged "worker heartbeat failed" with its whole

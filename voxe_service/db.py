@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import os
 from collections.abc import Iterator
 from contextlib import contextmanager
 from datetime import timedelta
@@ -130,7 +131,10 @@ def locked(session: Session, model, row_id: str):
 
 _CLOCK_READINGS = FailingStreak(log, "database clock", "reading", "readings")
 """This process's readings of the database's clock failing in a row (a traceback at every heartbeat and reaper pass
-had filled the log while PostgreSQL was down)."""
+had filled the log while PostgreSQL was down). A process forked from this one (a Celery pool process, re-forked
+while the worker's heartbeats failed) counts its own from zero: it had logged its first failure "reading 5 in a
+row failed", with no traceback."""
+os.register_at_fork(after_in_child=lambda: setattr(_CLOCK_READINGS, "failed", 0))
 
 
 def sync_clock(engine: Engine | None = None) -> timedelta | None:
