@@ -5292,3 +5292,31 @@ def test_the_sql_broker_keeps_no_delivered_message_and_delivers_an_unacknowledge
     subprocess.run([sys.executable, "-c", f"from voxe_service.broker import register; register(); {opens}"],
                    check=True, env={**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)})
     assert rows() == [(1, "{}")]
+
+
+def test_a_sweeps_job_the_reaper_ends_canceled_for_a_revoked_key_keeps_naming_the_revoke(db):
+    """revoke-key flags a running sweep job canceled and its worker dies: the reaper ends it canceled naming the
+    revoke (voxe_service.jobs.finish_jobs), then sends the evaluation riding in its chain alone, which wrote the
+    job's message again as the reaper gave it ("canceled: ..." with nothing of the revoke), and the evaluation's
+    failure quoted that."""
+    from sqlalchemy import update
+
+    from api.reaper import reap_orphaned_jobs
+    from voxe_service.db import session_scope
+    from voxe_service.models import ApiKey, Job, utcnow
+
+    with session_scope() as session:
+        session.add(ApiKey(id="leaving", name="leaving", revoked_at=utcnow()))
+    scene = add_scene()
+    add_heartbeat("dead@host", age_s=2 * db.job_stale_timeout_s)
+    job_id = add_job(scene, "running", 2 * db.job_stale_timeout_s, "dead@host", "edit", completed_stages=["reconstruct"],
+                     cancel_requested=True, batch_id="sweep")
+    evaluation = add_job(scene, "queued", 0, mode="evaluate", batch_id="sweep", source_job_ids=[job_id])
+    with session_scope() as session:
+        session.execute(update(Job).where(Job.id.in_([job_id, evaluation])).values(owner_key_id="leaving"))
+    assert reap_orphaned_jobs(db) == [job_id]
+    row = job_row(job_id)
+    assert row.state == "canceled"
+    assert row.message.endswith(": its API key leaving was revoked"), row.message
+    assert events_of(job_id)[-1]["detail"].endswith(": its API key leaving was revoked")
+    assert job_row(evaluation).task_id is not None

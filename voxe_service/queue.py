@@ -345,8 +345,9 @@ def requeue_interrupted(session: Session, queue: TaskQueue, job: Job, settings: 
                             **fields)
         session.commit()
         if ended:
-            try:
-                send_evaluations_alone(session, queue, job, fields.get("message"))
+            try:  # the message it ended with: finish_jobs' (which names a revoked key's), not the one asked for
+                send_evaluations_alone(session, queue, job, session.scalar(select(Job.message)
+                                                                           .where(Job.id == job.id)))
             except QueueUnavailable:  # they failed with the reason; the job's ending stands
                 pass
         return state if ended else None
