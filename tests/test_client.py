@@ -98,6 +98,25 @@ def test_a_url_without_http_or_a_host_is_bad_input_not_a_service_not_reached(cap
     Client("https://svc.test:8443/voxe/").close()
 
 
+def test_a_service_url_with_a_query_or_fragment_is_refused_naming_it_not_sent_calls_under_the_query(capsys):
+    """httpx appends each call's path to the base URL's query: ``--api "http://host:8000/?x=1"`` had sent every call
+    to ``/?x=1/v1/...`` (the service's front page, or a proxy's, answering each). A query or fragment, even an empty
+    one, is bad input naming it."""
+    from voxe_core.cli import main
+
+    asked = []
+    for url, part, tail in (("http://127.0.0.1:8000/?x=1", "query", "?x=1"), ("https://svc.test/voxe?", "query", "?"),
+                            ("http://127.0.0.1:8000/docs#/", "fragment", "#")):
+        message = (f"{url!r} is not a service URL: it has a {part}, {tail!r}, which a base URL takes none of (as "
+                   "http://127.0.0.1:8000 or https://host/prefix)")
+        with pytest.raises(ValueError, match=f"^{re.escape(message)}$"):
+            Client(url, transport=httpx.MockTransport(lambda request: asked.append(request.url)))
+        assert main(["status", "j1", "--api", url]) == 2
+        assert capsys.readouterr().err == f"voxe status: error: {message}\n"
+    assert asked == []
+    Client("https://svc.test:8443/voxe/").close()
+
+
 def test_a_redirect_answered_says_where_it_points_not_that_it_may_not_be_the_service(capsys):
     """An http:// --api that a proxy redirects to https:// had been "answered 301 with no content type, not the API's
     JSON (is it the Vox-E service?)", the redirect's target unsaid (the client follows none); one with a JSON body

@@ -218,6 +218,11 @@ class Client:
         if url.port is not None and not 0 < url.port <= 65535:  # httpx takes any number, and the socket then
             # connects to it modulo 65536: --api http://host:80000 had sent every call, and its key, to port 14464
             raise ValueError(f"{base_url!r} is not a service URL: its port {url.port} is none of 1 to 65535")
+        if (tail := re.search(r"[?#].*", self.base_url, re.S)) is not None:  # httpx appends each call's path to
+            # the query: --api "http://host:8000/?x=1" had sent every call to /?x=1/v1/... (a fragment: a page's place)
+            part = "query" if tail[0][0] == "?" else "fragment"
+            raise ValueError(f"{base_url!r} is not a service URL: it has a {part}, {tail[0]!r}, which a base URL "
+                             f"takes none of (as {DEFAULT_URL} or https://host/prefix)")
         self._http = httpx.Client(base_url=url, headers=headers, timeout=timeout, transport=transport)
 
     def __enter__(self) -> "Client":
