@@ -140,8 +140,8 @@ def test_a_loss_scale_beyond_float32_is_refused_by_name(name, rule, value):
     assert getattr(EditConfig(**{name: FLOAT32_MAX}), name) == FLOAT32_MAX
 
 
-@pytest.mark.parametrize("flag, message", [("--guidance-scale", "guidance_scale must be positive"),
-                                           ("--reg-weight", "regulariser_weight must be >= 0")])
+@pytest.mark.parametrize("flag, message", [("--guidance-scale", "--guidance-scale must be positive"),
+                                           ("--reg-weight", "--reg-weight must be >= 0")])
 def test_voxe_edit_refuses_a_loss_scale_beyond_float32_before_the_model_loads(flag, message, small_sphere, tmp_path,
                                                                               monkeypatch, capsys):
     import voxe_core.cli.edit as edit_command
@@ -152,6 +152,35 @@ def test_voxe_edit_refuses_a_loss_scale_beyond_float32_before_the_model_loads(fl
                  "--device", "cpu", flag, "1e39"]) == 2
     assert capsys.readouterr().err == f"voxe edit: error: {message} and finite in float32, got 1e+39\n"
     assert not (tmp_path / "out").exists()
+
+
+def test_voxe_edit_and_refine_refuse_an_out_of_range_value_naming_the_option_typed(small_sphere, tmp_path, monkeypatch,
+                                                                                  capsys):
+    """``voxe edit --reg-weight -1`` had been refused as "regulariser_weight must be >= 0 ...", and ``voxe refine
+    --sigma 0`` as "sigma must be positive; smoothness and smoothing_sigma non-negative ... got 0.0, 5.0, 0.5": the
+    settings they fill, no option the user typed (as a value that is no finite number now is). The configs' own rule
+    is said, by the option's name."""
+    import voxe_core.cli.edit as edit_command
+    import voxe_core.cli.refine as refine_command
+
+    for module in (edit_command, refine_command):
+        monkeypatch.setattr(module, "load_guidance", lambda *args, **kwargs: pytest.fail("loaded the model"))
+    small_sphere.save(tmp_path / "g.safetensors")
+    grid = str(tmp_path / "g.safetensors")
+    edit = ["edit", grid, "--prompt", "a dog", "--out", str(tmp_path / "edit"), "--device", "cpu"]
+    refine = ["refine", grid, "--initial", grid, "--prompt", "a dog", "--edit-words", "dog", "--out",
+              str(tmp_path / "refine"), "--device", "cpu"]
+    for command, option, value, rule in (
+            (edit, "--reg-weight", "-1", "must be >= 0 and finite in float32, got -1.0"),
+            (edit, "--lr", "0", "must be positive and finite in float32, got 0.0"),
+            (edit, "--guidance-scale", "-7.5", "must be positive and finite in float32, got -7.5"),
+            (refine, "--sigma", "0", "must be positive and finite, got 0.0"),
+            (refine, "--smoothness", "-1", "must be non-negative and at most 3.403e+38, got -1.0"),
+            (refine, "--smoothing-sigma", "-0.5", "must be non-negative and finite, got -0.5"),
+            (refine, "--lr", "-0.1", "must be positive and finite, got -0.1"),
+            (refine, "--tv-weight", "-2", "must be non-negative and finite, got -2.0")):
+        assert main([*command, option, value]) == 2
+        assert capsys.readouterr().err == f"voxe {command[0]}: error: {option} {rule}\n"
 
 
 @pytest.mark.parametrize("name", ["front_azimuth_deg", "preview_elevation_deg"])

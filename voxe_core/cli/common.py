@@ -292,6 +292,20 @@ def finite_float(text: str) -> float:
     return value
 
 
+@contextlib.contextmanager
+def said_by_option(options: dict[str, str]) -> Iterator[None]:
+    """The config's range checks (their one source) refusing a setting of ``options`` (setting: option), said naming
+    the option typed: ``voxe edit --reg-weight -1`` had been refused as "regulariser_weight must be >= 0 ...", a
+    setting no option is called (finite_float names it only for a value that is no finite number)."""
+    try:
+        yield
+    except ValueError as exc:
+        setting, _, rule = str(exc).partition(" ")
+        if setting not in options or not rule.startswith("must "):
+            raise
+        raise ValueError(f"{options[setting]} {rule}") from None
+
+
 def non_negative_int(text: str) -> int:
     value = int(text)
     if value < 0:

@@ -14,7 +14,7 @@ from pathlib import Path
 from voxe_core import constants as paper
 from voxe_core.cli.common import (
     EXIT_INTERRUPTED, EXIT_USAGE, add_grid_output_arguments, add_model_arguments, add_view_arguments, check_device, finite_float, load_guidance,
-    load_views, non_negative_int, positive_int, positive_int_at_most, remove_earlier_outputs, run_stage, seed, view_options_given, writable_folder,
+    load_views, non_negative_int, positive_int, positive_int_at_most, remove_earlier_outputs, run_stage, said_by_option, seed, view_options_given, writable_folder,
 )
 from voxe_core.guidance.prompts import check_no_special_tokens, check_prompt_length, names_something
 from voxe_core.presets import BATCH_SIZE, EDIT_SCHEDULES, PREVIEW_EVERY, SEED, TIMESTEP_SCHEDULES, edit_config
@@ -102,7 +102,8 @@ def cmd_edit(args) -> int:
     check_prompt_length(args.prompt, not args.no_view_words)  # (had been said after the model's load, a download maybe)
     check_device(args)  # before the grid is read: a device this machine lacks had been said only after it
     grid = load_grid(args.grid)
-    config = edit_config(job_params(args), grid.kind, args.checkpoint_every)  # bad options fail before the model loads
+    with said_by_option({"lr": "--lr", "regulariser_weight": "--reg-weight", "guidance_scale": "--guidance-scale"}):
+        config = edit_config(job_params(args), grid.kind, args.checkpoint_every)  # (before the model loads)
     config.render.fused = args.fused_marcher
     if config.regulariser in IMAGE_REGULARISERS and args.data is None:
         raise ValueError(f"--regulariser {config.regulariser} compares renders with the input views: pass --data DATA_DIR")

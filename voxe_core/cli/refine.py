@@ -16,7 +16,7 @@ from pathlib import Path
 from voxe_core import constants as paper
 from voxe_core.cli.common import (
     EXIT_INTERRUPTED, EXIT_USAGE, add_grid_output_arguments, add_model_arguments, check_device, finite_float,
-    load_guidance, move_staged, non_negative_int, positive_int, positive_int_at_most, remove_earlier_outputs, run_stage, seed, staging_folder,
+    load_guidance, move_staged, non_negative_int, positive_int, positive_int_at_most, remove_earlier_outputs, run_stage, said_by_option, seed, staging_folder,
     writable_file, writable_folder,
 )
 from voxe_core.guidance.prompts import (check_edit_words_name_an_edit, check_edit_words_read,
@@ -111,7 +111,9 @@ def cmd_refine(args) -> int:
         writable_file(args.out / name)
     writable_folder(args.out / "renders")
     model = args.model or paper.ATTENTION_MODEL_ID
-    config = refine_config(job_params(args), model)
+    with said_by_option({"smoothing_sigma": "--smoothing-sigma", "lr": "--lr", "tv_weight": "--tv-weight",
+                         "sigma": "--sigma", "smoothness": "--smoothness"}):
+        config = refine_config(job_params(args), model)
     for name in _preview_frames(args.preview_views, config.views):  # (a folder of a frame's name: the same)
         writable_file(args.out / "renders" / name)
     initial, edited = load_grid(args.initial), load_grid(args.edited)
