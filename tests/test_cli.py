@@ -655,6 +655,35 @@ def test_a_download_refuses_an_unlisted_name_before_any_and_a_failed_one_leaves_
     assert (tmp_path / "all" / "a.png").read_bytes() == body
 
 
+def test_a_download_naming_an_artifact_twice_downloads_it_once(monkeypatch, tmp_path, capsys):
+    """``voxe download j1 --name a.png --name a.png`` had downloaded (and checked, and said) a.png twice, and a name
+    not listed given twice was named twice in the refusal."""
+    import hashlib
+
+    import httpx
+
+    import voxe_core.cli.service as service
+    from voxe_client import Client
+
+    asked = []
+
+    def answer(request: httpx.Request) -> httpx.Response:
+        asked.append(request.url.path)
+        if request.url.path == "/v1/jobs/j1":
+            return httpx.Response(200, json={"id": "j1", "state": "succeeded"})
+        if request.url.path == "/v1/jobs/j1/artifacts":
+            return httpx.Response(200, json=[{"name": name, "size": 5, "sha256": hashlib.sha256(b"frame").hexdigest()}
+                                             for name in ("a.png", "b.png")])
+        return httpx.Response(200, content=b"frame")
+
+    monkeypatch.setattr(service, "_client", lambda args: Client(transport=httpx.MockTransport(answer)))
+    assert main(["download", "j1", "--name", "a.png", "--name", "a.png", "--out", str(tmp_path)]) == 0
+    assert [path for path in asked if "/artifacts/" in path] == ["/v1/jobs/j1/artifacts/a.png"]
+    assert capsys.readouterr().err == f"{tmp_path / 'a.png'} (sha256 checked)\n"
+    assert main(["download", "j1", "--name", "nope", "--name", "nope", "--out", str(tmp_path)]) == 2
+    assert "job j1 has no artifact 'nope'; it has a.png, b.png; nothing downloaded" in capsys.readouterr().err
+
+
 @pytest.mark.parametrize("state, artifacts, said", [
     ("running", ["a.png"], "job j1 is running: these are the artifacts it has so far; `voxe wait j1`, then download "
                            "again for all of them"),

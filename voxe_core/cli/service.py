@@ -317,10 +317,11 @@ def cmd_download(args) -> int:
         try:
             state = client.get_job(args.job_id)["state"]  # before the listing: an artifact it adds after is in it
             listed = [a["name"] for a in client.artifacts(args.job_id)]
-            if missing := [name for name in args.name or () if name not in listed]:  # before any is downloaded
+            names = list(dict.fromkeys(args.name or listed))  # each once: --name a --name a had downloaded a twice
+            if missing := [name for name in names if name not in listed]:  # before any is downloaded
                 raise ServiceError(f"job {args.job_id} has no artifact {', '.join(map(repr, missing))}; it has "
                                    f"{', '.join(sorted(listed)) or 'none'}; nothing downloaded")
-            for name in args.name or listed:
+            for name in names:
                 path = client.download(args.job_id, name, args.out / name)
                 if not args.quiet:
                     print(f"{path} (sha256 checked)", file=sys.stderr)
