@@ -606,6 +606,36 @@ def test_wait_with_a_timeout_cuts_a_retry_after_at_it(monkeypatch):
         assert clock[0] == 5.0 and sent == [None, 0.0]
 
 
+@pytest.mark.parametrize("tail, ended_as", [
+    (b'event: progress\ndata: {"id": "j1", "state": "succeeded", "stage": null, "overall_progress": 1.0}\n\n',
+     {"id": "j1", "state": "succeeded", "stage": None, "overall_progress": 1.0}),
+    (b"", {"id": "j1", "state": "succeeded", "stage": "export", "overall_progress": 0.9}),  # gone before its snapshot
+    (b'event: error\ndata: {"detail": "job \'j1\' was deleted"}\n\n',
+     {"id": "j1", "state": "succeeded", "stage": "export", "overall_progress": 0.9}),
+])
+def test_wait_on_a_job_deleted_after_its_stream_said_it_ended_returns_the_end_it_said(tail, ended_as, monkeypatch,
+                                                                                     capsys):
+    """A job that ended and was deleted (its owner, a retention sweep) before wait's final read had ended the wait on
+    that read's 404 ("GET /v1/jobs/j1: HTTP 404: job 'j1' not found", voxe wait's exit 2) although the stream had said
+    "succeeded": it returns the job as the stream last gave it, with the terminal state it heard."""
+    import voxe_core.cli.service as service
+    from voxe_core.cli import main
+
+    stream = (b'event: progress\ndata: {"id": "j1", "state": "running", "stage": "export", "overall_progress": 0.9}\n\n'
+              b'id: 9\nevent: succeeded\ndata: {"id": 9, "kind": "succeeded"}\n\n' + tail)
+
+    def answer(request: httpx.Request) -> httpx.Response:
+        if request.url.path == "/v1/jobs/j1/events":
+            return httpx.Response(200, headers={"content-type": "text/event-stream"}, content=stream)
+        return httpx.Response(404, json={"detail": "job 'j1' not found"})
+
+    with Client(transport=httpx.MockTransport(answer)) as client:
+        assert client.wait("j1") == ended_as
+    monkeypatch.setattr(service, "_client", lambda args: Client(transport=httpx.MockTransport(answer)))
+    assert main(["wait", "j1", "--quiet"]) == 0
+    assert json.loads(capsys.readouterr().out) == ended_as
+
+
 def test_wait_with_no_time_left_looks_at_the_job_once(monkeypatch):
     """``wait(job, timeout=0)`` had raised JobWaitTimeout "did not end" on a job long succeeded, asking nothing: a
     wait that ran out before the stream said where the job stood looks at it once, and returns it if it has ended;

@@ -512,12 +512,20 @@ class Client:
         looks at the job once first, for at most :data:`LOOK_AT_JOB_S` more: one ended is returned (it had been a
         JobWaitTimeout, nothing asked). A stream the service ended with an ``error`` (the job deleted, the key
         revoked meanwhile) is a ServiceError saying so, with the status the job's record is then answered with (it
-        had been that answer's own, ``HTTP 404: job 'j1' not found``, as if the job had never been)."""
+        had been that answer's own, ``HTTP 404: job 'j1' not found``, as if the job had never been). A job the stream
+        said ended, then deleted before it is read (404), is returned as the stream last gave it: its last snapshot,
+        with the terminal state heard (it had been that 404, the job's end unsaid)."""
         deadline = None if timeout is None else time.monotonic() + timeout
         path = f"/v1/jobs/{_segment(job_id)}"
-        ended_by = None
+        ended_by = snapshot = ended_as = None
         try:
             for event in self.events(job_id, reconnect_for=reconnect_for, on_reconnect=on_reconnect, timeout=timeout):
+                if event["event"] == "progress":
+                    snapshot = event["data"]
+                    if snapshot.get("state") in TERMINAL_STATES:
+                        ended_as = {"id": job_id, **snapshot}
+                elif event["event"] in TERMINAL_STATES:  # (its snapshot comes after it, unless the job is gone)
+                    ended_as = {"id": job_id, **(snapshot or {}), "state": event["event"]}
                 if event["event"] == "progress" and on_progress is not None:
                     on_progress(event["data"])
                 elif event["event"] == "warning" and on_warning is not None:
@@ -540,6 +548,8 @@ class Client:
         try:
             return self._record("job", "GET", path, deadline=deadline)
         except ServiceError as exc:
+            if ended_as is not None and exc.status == 404:  # deleted once ended (its owner, a retention sweep)
+                return ended_as
             if ended_by is None:
                 raise
             raise ServiceError(f"event stream of job {job_id} ended: {ended_by}", exc.status, exc.detail) from None
