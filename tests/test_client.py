@@ -117,6 +117,25 @@ def test_a_service_url_with_a_query_or_fragment_is_refused_naming_it_not_sent_ca
     Client("https://svc.test:8443/voxe/").close()
 
 
+def test_a_service_url_with_a_user_or_password_is_refused_without_saying_the_password(capsys):
+    """``--api http://user:secret@host:8000`` had been taken: httpx sent the user and password as Basic auth in place of
+    the API key's Bearer header (the service answering 401), and every error quoted the URL, the password with it
+    ("cannot reach the service at http://user:secret@..."). It is bad input, the password not said."""
+    from voxe_core.cli import main
+
+    asked = []
+    for url, shown in (("http://user:secret@127.0.0.1:8000", "http://***@127.0.0.1:8000"),
+                       ("https://s3cr%40t@svc.test/voxe?x=1", "https://***@svc.test/voxe?x=1"),
+                       ("http://user@svc.test", "http://***@svc.test")):
+        message = (f"{shown!r} is not a service URL: it has a user name or password, which the service takes none of "
+                   "(its API key goes as --api-key or VOXE_API_KEY; the client's api_key)")
+        with pytest.raises(ValueError, match=f"^{re.escape(message)}$"):
+            Client(url, api_key="k", transport=httpx.MockTransport(lambda request: asked.append(request.headers)))
+        assert main(["status", "j1", "--api", url]) == 2
+        assert capsys.readouterr().err == f"voxe status: error: {message}\n"
+    assert asked == []
+
+
 def test_a_redirect_answered_says_where_it_points_not_that_it_may_not_be_the_service(capsys):
     """An http:// --api that a proxy redirects to https:// had been "answered 301 with no content type, not the API's
     JSON (is it the Vox-E service?)", the redirect's target unsaid (the client follows none); one with a JSON body

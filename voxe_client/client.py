@@ -212,6 +212,11 @@ class Client:
             url = httpx.URL(self.base_url)
         except httpx.InvalidURL as exc:  # (httpx's own type: a traceback in the CLI, which reports ValueErrors)
             raise ValueError(f"{base_url!r} is not a service URL: {exc}") from None
+        if url.userinfo:  # httpx had sent it as Basic auth in place of the key's header (a 401), and each error quoted
+            # the URL, its password with it; this one does not
+            raise ValueError(f"{re.sub(r'//[^/?#]*@', '//***@', base_url, count=1)!r} is not a service URL: it has a "
+                             "user name or password, which the service takes none of (its API key goes as --api-key or "
+                             "VOXE_API_KEY; the client's api_key)")
         if url.scheme not in ("http", "https") or not url.host:  # (each call had failed as a service not reached)
             raise ValueError(f"{base_url!r} is not a service URL: it takes http:// or https:// and a host, as "
                              f"{DEFAULT_URL}")
