@@ -83,6 +83,36 @@ def test_an_unreachable_service_is_a_service_error_naming_it():
             list(client.events("j1"))
 
 
+def test_the_packages_example_runs(tmp_path, monkeypatch):
+    """voxe_client's docstring example swept ``scene_id``, a name it never set (a NameError for whoever ran it)."""
+    import hashlib
+
+    import voxe_client
+
+    body = b"frame"
+
+    def answer(request: httpx.Request) -> httpx.Response:
+        if request.url.path.endswith("/events"):
+            return httpx.Response(200, headers={"content-type": "text/event-stream"},
+                                  content=b'event: progress\ndata: {"state": "succeeded", "overall_progress": 1.0}\n\n')
+        if request.url.path.endswith("/artifacts"):
+            return httpx.Response(200, json=[{"name": "turntable.mp4", "size": len(body),
+                                              "sha256": hashlib.sha256(body).hexdigest()}])
+        if "/artifacts/" in request.url.path:
+            return httpx.Response(200, content=body)
+        if request.url.path == "/v1/sweeps":
+            assert json.loads(request.content)["scenes"] == [{"scene_id": "s1", "object": "microphone"}]
+        return httpx.Response(200, json={"id": "s1" if "scenes" in request.url.path else "j1", "state": "succeeded"})
+
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "mic.zip").write_bytes(b"PK")
+    example = "\n".join(line[4:] for line in voxe_client.__doc__.splitlines() if line.startswith("    "))
+    monkeypatch.setattr(voxe_client, "Client", lambda url, api_key: Client(url, api_key=api_key,
+                                                                            transport=httpx.MockTransport(answer)))
+    exec(example, {})
+    assert (tmp_path / "out" / "turntable.mp4").read_bytes() == body
+
+
 def test_a_url_without_http_or_a_host_is_bad_input_not_a_service_not_reached(capsys):
     """``--api 127.0.0.1:8000`` (no scheme), ``ftp://...`` or ``http://`` had been taken, each call then failing as a
     service not reached: exit 3, which tells a script to try again later, for a typo."""
