@@ -1023,6 +1023,26 @@ def test_a_real_valued_option_that_is_no_finite_number_is_refused_naming_the_opt
             assert f"error: argument {option}: must be a finite number, got {value!r}" in capsys.readouterr().err
 
 
+def test_the_other_commands_real_valued_options_refuse_a_value_that_is_no_finite_number_naming_the_option(
+        tmp_path, capsys):
+    """``voxe export-mesh --level inf`` had been refused after the grid was read as "mesh level must be a positive
+    density, got inf" (inf is positive), ``voxe render --ring 8 --elevation nan`` as "a turntable's elevation must lie
+    between -90 and 90 degrees", ``--elevation 1e400`` as "got inf": options of plain float, unlike edit's and
+    refine's. Each is refused as the options are read, by the option's name, as those are."""
+    grid = str(tmp_path / "missing.safetensors")
+    for command, option in ((["export-mesh", grid, "--out", "m.ply"], "--level"),
+                            (["render", grid, "--ring", "8", "--out", "r"], "--elevation"),
+                            (["turntable", grid, "--out", "t.gif"], "--elevation"),
+                            (["turntable", grid, "--out", "t.gif"], "--fps"),
+                            (["evaluate", grid, "--edit", grid, "a dog", "--object", "dog", "--out", "e"],
+                             "--elevation")):
+        for value in ("inf", "nan", "1e400"):
+            with pytest.raises(SystemExit) as exc:
+                main([*command, f"{option}={value}"])
+            assert exc.value.code == 2
+            assert f"error: argument {option}: must be a finite number, got {value!r}" in capsys.readouterr().err
+
+
 @pytest.mark.parametrize("text, message", [
     ('{"a": ' * 5000 + "1" + "}" * 5000, "its arrays or objects nest too deeply"),  # had been a RecursionError
     # had been argparse's "invalid _json_object value: '{...}'", quoting the whole text
@@ -1656,7 +1676,7 @@ def test_a_turntable_faster_than_a_video_holds_is_refused_before_rendering(spher
     """--fps had no ceiling: 1e10 failed in ffmpeg ("Unable to parse "framerate" option value") after the whole
     render, and 2e6 wrote an MP4 at 1,001,000 fps (a longer clip than asked)."""
     out = tmp_path / "tt.mp4"
-    for fps in ("1e10", "2e6", "inf"):
+    for fps in ("1e10", "2e6"):  # (inf: refused as the options are read, by finite_float)
         assert main(["turntable", str(sphere_file), "--out", str(out), "--frames", "2", "--size", "8", "--fps", fps,
                      "--quiet"]) == 2
         err = capsys.readouterr().err

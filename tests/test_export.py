@@ -251,8 +251,9 @@ def test_a_turntable_elevation_past_the_poles_is_refused_naming_the_range(sphere
         turntable_cameras(4, elevation, 8)
     grid, out = tmp_path / "g.safetensors", tmp_path / "t.gif"
     sphere_grid.save(grid)
-    assert main(["turntable", str(grid), "--out", str(out), "--elevation", str(elevation), "--quiet"]) == 2
-    assert "between -90 and 90 degrees" in capsys.readouterr().err and not out.exists()
+    if math.isfinite(elevation):  # (nan and inf: refused as voxe's options are read, test_cli.py)
+        assert main(["turntable", str(grid), "--out", str(out), "--elevation", str(elevation), "--quiet"]) == 2
+        assert "between -90 and 90 degrees" in capsys.readouterr().err and not out.exists()
     for pole in (90.0, -90.0):
         assert torch.allclose(turntable_cameras(2, pole, 8).c2w[:, :3, 2], torch.tensor([0.0, 0.0, pole / 90]),
                               atol=1e-6)

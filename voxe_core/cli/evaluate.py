@@ -8,8 +8,9 @@ import sys
 from pathlib import Path
 
 from voxe_core.cli.common import (
-    EXIT_INTERRUPTED, EXIT_USAGE, add_model_arguments, add_view_arguments, check_device, load_views, positive_int,
-    move_staged, remove_earlier_outputs, run_stage, staging_folder, view_options_given, writable_file, writable_folder,
+    EXIT_INTERRUPTED, EXIT_USAGE, add_model_arguments, add_view_arguments, check_device, finite_float, load_views,
+    move_staged, positive_int, remove_earlier_outputs, run_stage, staging_folder, view_options_given, writable_file,
+    writable_folder,
 )
 from voxe_core.constants import (
     CLIP_MODEL_ID, EVALUATION_RING_ELEVATION, EVALUATION_RING_SIZE, EVALUATION_RING_VIEWS, INCEPTION_FILE,
@@ -37,7 +38,7 @@ def add_parsers(commands, common) -> None:
     add_view_arguments(ev, "train")
     ev.add_argument("--views", type=positive_int, default=EVALUATION_RING_VIEWS,
                     help=f"ring views (default {EVALUATION_RING_VIEWS}: the paper's)")
-    ev.add_argument("--elevation", type=float, default=EVALUATION_RING_ELEVATION,
+    ev.add_argument("--elevation", type=finite_float, default=EVALUATION_RING_ELEVATION,
                     help=f"ring elevation in degrees (default {EVALUATION_RING_ELEVATION:g})")
     ev.add_argument("--size", type=positive_int, default=EVALUATION_RING_SIZE,
                     help=f"ring render size in pixels (default {EVALUATION_RING_SIZE})")

@@ -7,8 +7,8 @@ import sys
 from pathlib import Path
 
 from voxe_core.cli.common import (
-    EXIT_INTERRUPTED, add_device_argument, add_grid_output_arguments, check_device, int_list, positive_int, run_stage,
-    seed, tensor_file, writable_file,
+    EXIT_INTERRUPTED, add_device_argument, add_grid_output_arguments, check_device, finite_float, int_list, positive_int,
+    run_stage, seed, tensor_file, writable_file,
 )
 from voxe_core.cli.reconstruct import recipe_params
 from voxe_core.presets import (
@@ -23,7 +23,7 @@ def add_parsers(commands, common) -> None:
     )
     mesh.add_argument("grid", type=Path, metavar="GRID")
     mesh.add_argument("--out", type=Path, required=True, help="mesh file, .ply, .glb or .obj")
-    mesh.add_argument("--level", type=float, default=None, help="surface density (default ln 2 / voxel size)")
+    mesh.add_argument("--level", type=finite_float, default=None, help="surface density (default ln 2 / voxel size)")
     mesh.add_argument("--resolution", type=positive_int, default=ExportConfig.mesh_resolution,
                       help="resample to N points per axis")
     add_device_argument(mesh)

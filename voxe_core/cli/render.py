@@ -13,7 +13,7 @@ import sys
 from pathlib import Path
 
 from voxe_core.cli.common import (
-    EXIT_INTERRUPTED, add_device_argument, add_view_arguments, check_device, load_views, positive_int,
+    EXIT_INTERRUPTED, add_device_argument, add_view_arguments, check_device, finite_float, load_views, positive_int,
     run_stage, staging_folder, view_options_given, writable_file, writable_folder,
 )
 from voxe_core.files import head_that_fits, replacing
@@ -33,7 +33,7 @@ def add_parsers(commands, common) -> None:
     add_view_arguments(ren, "test")
     ren.add_argument("--size", type=positive_int, default=None,
                      help=f"ring view size in pixels (default {ExportConfig.view_size})")
-    ren.add_argument("--elevation", type=float, default=None,
+    ren.add_argument("--elevation", type=finite_float, default=None,
                      help=f"ring elevation in degrees (default {ExportConfig.elevation:g})")
     add_centre_argument(ren)
     ren.add_argument("--out", type=Path, required=True, metavar="DIR",
@@ -47,8 +47,8 @@ def add_parsers(commands, common) -> None:
     tt.add_argument("--out", type=Path, required=True, help="video file, .mp4 or .gif")
     tt.add_argument("--frames", type=positive_int, default=ExportConfig.turntable_frames)
     tt.add_argument("--size", type=positive_int, default=ExportConfig.turntable_size)
-    tt.add_argument("--elevation", type=float, default=ExportConfig.elevation)
-    tt.add_argument("--fps", type=float, default=ExportConfig.fps)
+    tt.add_argument("--elevation", type=finite_float, default=ExportConfig.elevation)
+    tt.add_argument("--fps", type=finite_float, default=ExportConfig.fps)
     add_centre_argument(tt)
     add_device_argument(tt)
     tt.set_defaults(run=cmd_turntable)
