@@ -2037,6 +2037,34 @@ def test_a_shared_fit_whose_grid_was_deleted_from_the_storage_is_fitted_again_by
     assert warnings == [f"the scene's reconstruction {rec_id} had its grid {lost} deleted from the storage: fitting "
                         "it again"]
 
+def test_a_refit_that_ran_out_of_memory_with_only_jobs_past_their_reconstruct_left_ends_failed(db, monkeypatch):
+    """A shared fit refitted after its grid was deleted from the storage, the refit stopped by its worker running out
+    of memory: the hand-back counted the job that had reused the old grid and gone on to its edit as waiting for the
+    fit, so the fit was handed back pending, with no job left ever to take it over, and the refit's stray grids kept.
+    A job past its reconstruct stage waits for no fit: it ends failed, nothing of its left in the storage."""
+    from conftest import make_sphere_grid
+    from voxe_service.storage import get_storage
+    from worker import runtime, tasks
+
+    storage, scene = get_storage(db), add_scene()
+    rec_id = add_reconstruction(scene, params={"route": "voxelize"})
+    first, later = (add_job(scene, "queued", 0, reconstruction_id=rec_id) for _ in range(2))
+    monkeypatch.setattr(tasks, "_check_job_can_start", lambda job, settings: None)
+    monkeypatch.setattr(tasks, "_voxelize", lambda *args: make_sphere_grid(8))
+    assert tasks.reconstruct_task.apply(args=(first,)).get()["state"] == "done"
+    assert job_row(first).state == "running"  # (past its reconstruct, its edit to come)
+    storage.delete(runtime.load_reconstruction(rec_id).grid_key)
+
+    def out_of_memory(*args):
+        raise MemoryError("the refit")
+
+    monkeypatch.setattr(tasks, "_voxelize", out_of_memory)
+    tasks.reconstruct_task.apply(args=(later,))
+    rec = runtime.load_reconstruction(rec_id)
+    assert (rec.state, rec.error) == ("failed", f"job {later}'s fit: out of memory on the worker (the refit)")
+    assert storage.list(f"reconstructions/{rec_id}/") == []
+
+
 def test_a_fit_whose_grid_record_meets_a_database_outage_is_handed_back_to_the_jobs_waiting_on_it(db, monkeypatch):
     """The database down exactly as a finished fit recorded its grid: the record raised out of the fit's hand-back, so
     the fit stayed running, owned by the job gone back to the queue, and another job waiting on it could not take it

@@ -1108,17 +1108,18 @@ def forget_fit_checkpoint(rec_id: str, job_id: str, run_token: str | None, key: 
 def hand_back_fit(rec_id: str, job_id: str, run_token: str | None, error: str) -> str | None:
     """Give back the fit ``job_id`` owns, stopped by no fault of the scene's (its worker out of memory, its G_i made
     and not kept: the storage refusing it), its job failing, with ``error`` recorded: pending while another job of the
-    reconstruction has not ended (it takes the fit over, maybe on a worker with more memory), failed when none is left
-    to (a later job's first claim tries a failed fit again). A sweep's evaluation shares its edits' reconstruction but
-    never fits: it takes nothing over (counted, the fit of a sweep had stayed pending for ever). Handed back with no
-    word, it had been listed pending with no error, as if a job were about to fit it, and each job that took it over
-    failed without it saying why. The state it was handed back in; None when the job no longer owned the fit, running:
-    one whose success this run recorded before an error (out of memory after the record's commit) had been handed
-    back, fitted all over again."""
+    reconstruction has neither ended nor done its reconstruct stage (it takes the fit over, maybe on a worker with more
+    memory), failed when none is left to (a later job's first claim tries a failed fit again). A sweep's evaluation
+    shares its edits' reconstruction but never fits: it takes nothing over (counted, the fit of a sweep had stayed
+    pending for ever); nor does a job that went on with the grid a refit replaces (``refit_lost_grid``: counted, the
+    refit had stayed pending with no job left to take it over). Handed back with no word, it had been listed pending
+    with no error, as if a job were about to fit it, and each job that took it over failed without it saying why. The
+    state it was handed back in; None when the job no longer owned the fit, running: one whose success this run
+    recorded before an error (out of memory after the record's commit) had been handed back, fitted all over again."""
     with session_scope() as session:
-        waiting = session.scalar(select(select(Job.id).where(Job.reconstruction_id == rec_id, Job.id != job_id,
-                                                             Job.mode != EVALUATE,
-                                                             Job.state.not_in(TERMINAL_STATES)).exists()))
+        waiting = any("reconstruct" not in (done or []) for done in session.scalars(
+            select(Job.completed_stages).where(Job.reconstruction_id == rec_id, Job.id != job_id, Job.mode != EVALUATE,
+                                               Job.state.not_in(TERMINAL_STATES))))
         values = ({"state": R_PENDING, "owner_job_id": None, "owner_run_token": None} if waiting
                   else {"state": R_FAILED, "finished_at": utcnow()})
         handed = session.execute(update(Reconstruction).where(*_owned(rec_id, job_id, run_token),
