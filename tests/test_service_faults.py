@@ -2065,6 +2065,51 @@ def test_a_refit_that_ran_out_of_memory_with_only_jobs_past_their_reconstruct_le
     assert storage.list(f"reconstructions/{rec_id}/") == []
 
 
+def test_a_job_whose_lost_grid_another_job_fitted_again_first_says_no_refit_of_its_own(db, monkeypatch, tmp_path):
+    """Two jobs met the shared fit's grid deleted from the storage, and the other set it back and fitted it again
+    before this one's refit call, which then did nothing: this job still said "fitting it again" in a warning, and went
+    on to reuse the other's new grid. It says nothing of a refit it did not make, and reuses the new grid."""
+    from sqlalchemy import select
+
+    from conftest import make_sphere_grid
+    from voxe_service.db import session_scope
+    from voxe_service.models import JobEvent
+    from voxe_service.storage import get_storage, reconstruction_storage_key
+    from worker import runtime, tasks
+
+    storage, scene = get_storage(db), add_scene()
+    rec_id = add_reconstruction(scene, params={"route": "voxelize"})
+    first, later = (add_job(scene, "queued", 0, reconstruction_id=rec_id) for _ in range(2))
+    other = add_job(scene, "running", 0, "alive@host", "reconstruct", reconstruction_id=rec_id)
+    monkeypatch.setattr(tasks, "_check_job_can_start", lambda job, settings: None)
+    monkeypatch.setattr(tasks, "_voxelize", lambda *args: make_sphere_grid(8))
+    assert tasks.reconstruct_task.apply(args=(first,)).get()["state"] == "done"
+    lost = runtime.load_reconstruction(rec_id).grid_key
+    storage.delete(lost)
+    refit_lost_grid = runtime.refit_lost_grid
+
+    def the_other_refitted_it_first(rec, key):
+        assert refit_lost_grid(rec, key)
+        assert runtime.try_claim_reconstruction(rec, other, "alive@host", db, allow_failed=False)
+        make_sphere_grid(8).save(tmp_path / "others.safetensors")
+        stored = storage.put_file(reconstruction_storage_key(rec, "grid-the-other.safetensors"),
+                                  tmp_path / "others.safetensors")
+        assert runtime.set_reconstruction(rec, other, state="succeeded", grid_key=stored.key, grid_size=stored.size,
+                                          grid_sha256=stored.sha256, iteration=1, total=1)
+        return refit_lost_grid(rec, key)
+
+    monkeypatch.setattr(runtime, "refit_lost_grid", the_other_refitted_it_first)
+    assert tasks.reconstruct_task.apply(args=(later,)).get()["state"] == "done", job_row(later).error
+    rec = runtime.load_reconstruction(rec_id)
+    assert (rec.state, rec.owner_job_id) == ("succeeded", other)
+    assert runtime.recorded_key(later, "initial_grid.safetensors") == rec.grid_key != lost
+    assert job_row(later).reconstruction_reused
+    with session_scope() as session:
+        warnings = list(session.scalars(select(JobEvent.detail).where(JobEvent.job_id == later,
+                                                                      JobEvent.kind == "warning")))
+    assert warnings == []
+
+
 def test_a_fit_whose_grid_record_meets_a_database_outage_is_handed_back_to_the_jobs_waiting_on_it(db, monkeypatch):
     """The database down exactly as a finished fit recorded its grid: the record raised out of the fit's hand-back, so
     the fit stayed running, owned by the job gone back to the queue, and another job waiting on it could not take it

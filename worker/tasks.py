@@ -420,11 +420,12 @@ def _reconstruct(job: Job, settings, device: str, storage) -> None:
                 if refitted or not isinstance(exc.__cause__, ObjectNotFound):
                     raise
             # Its grid deleted from the storage (by hand, a bucket's lifecycle rule): fitted again, where every later
-            # job of the scene with these parameters had failed on it for good.
+            # job of the scene with these parameters had failed on it for good. Said only by the job that set it back:
+            # one that another job's refit beat waits for or reuses that one's fit, as any other job does.
             refitted = True
-            callbacks.on_warning("reconstruct", f"the scene's reconstruction {rec.id} had its grid {rec.grid_key} "
-                                                "deleted from the storage: fitting it again")
-            runtime.refit_lost_grid(rec.id, rec.grid_key)
+            if runtime.refit_lost_grid(rec.id, rec.grid_key):
+                callbacks.on_warning("reconstruct", f"the scene's reconstruction {rec.id} had its grid {rec.grid_key} "
+                                                    "deleted from the storage: fitting it again")
             continue
         claimed_at = time.monotonic()  # the lease runs out lease_s after the claim at the latest
         if runtime.try_claim_reconstruction(rec_id, job.id, job.worker_hostname, settings, allow_failed=first,
