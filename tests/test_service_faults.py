@@ -2110,6 +2110,36 @@ def test_a_job_whose_lost_grid_another_job_fitted_again_first_says_no_refit_of_i
     assert warnings == []
 
 
+def test_a_refit_of_a_lost_grid_reads_as_not_yet_fitted_until_it_ends(db, monkeypatch):
+    """A shared fit set back to pending as its grid was deleted from the storage kept the old fit's iteration and
+    total: through a refit that reports no progress until its end (a mesh's voxelizing), it read as done, and every
+    job waiting on it showed its fit complete. It reads as a fit not begun until the refit reports."""
+    from conftest import make_sphere_grid
+    from voxe_service.storage import get_storage
+    from worker import runtime, tasks
+
+    storage, scene = get_storage(db), add_scene()
+    rec_id = add_reconstruction(scene, params={"route": "voxelize"})
+    first, later = (add_job(scene, "queued", 0, reconstruction_id=rec_id) for _ in range(2))
+    monkeypatch.setattr(tasks, "_check_job_can_start", lambda job, settings: None)
+    monkeypatch.setattr(tasks, "_voxelize", lambda *args: make_sphere_grid(8))
+    assert tasks.reconstruct_task.apply(args=(first,)).get()["state"] == "done"
+    assert (runtime.load_reconstruction(rec_id).iteration, runtime.load_reconstruction(rec_id).total) == (1, 1)
+    storage.delete(runtime.load_reconstruction(rec_id).grid_key)
+    seen = []
+
+    def voxelize_read_the_fit(*args):
+        rec = runtime.load_reconstruction(rec_id)
+        seen.append((rec.state, rec.iteration, rec.total))
+        return make_sphere_grid(8)
+
+    monkeypatch.setattr(tasks, "_voxelize", voxelize_read_the_fit)
+    assert tasks.reconstruct_task.apply(args=(later,)).get()["state"] == "done", job_row(later).error
+    assert seen == [("running", 0, 0)]
+    rec = runtime.load_reconstruction(rec_id)
+    assert (rec.state, rec.iteration, rec.total) == ("succeeded", 1, 1)
+
+
 def test_a_fit_whose_grid_record_meets_a_database_outage_is_handed_back_to_the_jobs_waiting_on_it(db, monkeypatch):
     """The database down exactly as a finished fit recorded its grid: the record raised out of the fit's hand-back, so
     the fit stayed running, owned by the job gone back to the queue, and another job waiting on it could not take it

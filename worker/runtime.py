@@ -1130,14 +1130,15 @@ def hand_back_fit(rec_id: str, job_id: str, run_token: str | None, error: str) -
 
 def refit_lost_grid(rec_id: str, grid_key: str) -> bool:
     """Set the succeeded fit whose recorded grid ``grid_key`` the storage no longer holds back to pending, its grid
-    forgotten, for the next claim to fit it again; whether it did (not when another job did so first, or the fit
-    records another grid by now)."""
+    forgotten and its progress back to none (kept, a refit that reports only at its end, a mesh's voxelizing, read as
+    done to the jobs waiting on it), for the next claim to fit it again; whether it did (not when another job did so
+    first, or the fit records another grid by now)."""
     with session_scope() as session:
         return session.execute(
             update(Reconstruction).where(Reconstruction.id == rec_id, Reconstruction.state == R_SUCCEEDED,
                                          Reconstruction.grid_key == grid_key)
-            .values(state=R_PENDING, grid_key=None, grid_size=None, grid_sha256=None, owner_job_id=None,
-                    owner_run_token=None, lease_until=None, finished_at=None)).rowcount == 1
+            .values(state=R_PENDING, grid_key=None, grid_size=None, grid_sha256=None, iteration=0, total=0,
+                    owner_job_id=None, owner_run_token=None, lease_until=None, finished_at=None)).rowcount == 1
 
 
 class LeaseLost(RuntimeError):
