@@ -10,13 +10,14 @@ import pytest
 import torch
 
 from voxe_core.cameras import Cameras, look_at
+from voxe_core.constants import FLOAT32_MAX
 from voxe_core.data import load_scene
 from voxe_core.grid import VoxelGrid
 from voxe_core.metrics import psnr
 from voxe_core.progress import Callbacks, StageCancelled
 from voxe_core.reconstruct import (
-    CHECKPOINT_FORMAT_VERSION, CHECKPOINT_KIND, ReconstructConfig, RowSparseAdam, load_checkpoint, ray_batch, reconstruct,
-    renders_nothing,
+    CHECKPOINT_FORMAT_VERSION, CHECKPOINT_KIND, FitDiverged, ReconstructConfig, RowSparseAdam, load_checkpoint, ray_batch,
+    reconstruct, renders_nothing,
 )
 from voxe_core.render import RenderConfig, render_image
 from voxe_core.tensorio import FormatError, save_tensors
@@ -347,6 +348,34 @@ def test_an_initial_grid_with_non_finite_features_is_refused_naming_them():
     with pytest.raises(ValueError, match=r"^the initial grid has non-finite \(NaN or infinite\) features at 2 of its "
                                          "1728 vertices, which its renders would carry into every step"):
         reconstruct(images, cams, tiny_config(), Callbacks(on_progress=pytest.fail), initial_grid=grid)
+
+
+@pytest.mark.parametrize("field", ["lr", "color_lr_scale"])
+def test_a_fit_whose_steps_overflow_float32_is_refused_naming_its_step_not_returned_nan(field):
+    """An lr (or colour scale) the config accepts, finite in float32, whose steps overflow it: the fit had returned a
+    NaN grid (saved; its edit then refused it as a damaged file). Its first NaN loss stops it, reported by no
+    progress."""
+    images, cams = synthetic_views()
+    seen = []
+    config = tiny_config(resolutions=(12,), iterations=(30,), image_downsample=(1,), **{field: FLOAT32_MAX})
+    with pytest.raises(FitDiverged, match=r"^the reconstruction diverged by iteration \d+ \(stage 1 of 1\): its "
+                                          r"loss is \{'l1': nan\}; its steps overflowed float32: lower lr or "
+                                          r"color_lr_scale \(now .*3\.40282e\+38.*\); not saved$") as caught:
+        reconstruct(images, cams, config, Callbacks(on_progress=seen.append))
+    assert str(caught.value).startswith(f"the reconstruction diverged by iteration {len(seen) + 1} ")
+
+
+def test_a_fit_whose_last_update_overflows_is_refused_where_its_stage_ends_or_before_its_checkpoint(tmp_path):
+    """A step whose loss was finite can overflow its update (its colour steps here): the grid is checked where the
+    stage ends, and before a checkpoint, which is then not written."""
+    images, cams = synthetic_views()
+    last = tiny_config(resolutions=(12,), iterations=(1,), image_downsample=(1,), checkpoint_every=1,
+                       color_lr_scale=FLOAT32_MAX)
+    for path in (None, tmp_path / "fit.ckpt"):
+        with pytest.raises(FitDiverged, match=r"^the reconstruction diverged by iteration 1 \(stage 1 of 1\): the grid "
+                                              r"holds NaN or infinite features at \d+ of its 1728 vertices"):
+            reconstruct(images, cams, last, checkpoint_path=path)
+    assert not (tmp_path / "fit.ckpt").exists()
 
 
 def test_progress_names_the_l1_and_the_total_variation_apart():

@@ -41,6 +41,11 @@ COUNT_FIELDS = ("resolutions", "iterations", "image_downsample", "rays_per_step"
 the tuples."""
 
 
+class FitDiverged(ArithmeticError):
+    """A reconstruction step's loss was NaN or infinite, or so were the grid's features where a checkpoint was to be
+    written or a stage ended: steps past float32's range (an ``lr`` or ``color_lr_scale`` far beyond the recipe's)."""
+
+
 @dataclass
 class ReconstructConfig:
     resolutions: tuple[int, ...] = (20, 40, 80, 160)
@@ -440,6 +445,20 @@ def check_finite_grid(grid: VoxelGrid, carried_into: str) -> None:
                          "(a damaged grid file?)")
 
 
+def _diverged(config: ReconstructConfig, stage: int, done: int, what: str) -> str:
+    return (f"the reconstruction diverged by iteration {done} (stage {stage + 1} of {len(config.resolutions)}): {what}; "
+            f"its steps overflowed float32: lower lr or color_lr_scale (now {config.lr:g} and "
+            f"{config.color_lr_scale:g}); not saved")
+
+
+def check_fit_finite(grid: VoxelGrid, config: ReconstructConfig, stage: int, done: int) -> None:
+    """FitDiverged unless every feature of the fit's grid is finite: a step whose loss was finite can still overflow
+    its update (a NaN grid had been returned, saved and blamed on its file by the edit that refused it)."""
+    if nonfinite := int((~grid.flat_features.detach().isfinite()).any(-1).sum()):
+        raise FitDiverged(_diverged(config, stage, done, f"the grid holds NaN or infinite features at {nonfinite} of "
+                                    f"its {grid.flat_features.shape[0]} vertices"))
+
+
 def renders_nothing(grid: VoxelGrid, render: RenderConfig, skip_density: float | torch.Tensor | None = None) -> bool:
     """Whether every render of ``grid`` under ``render`` is the background: a ReLU field with no positive density
     anywhere (or, where empty cells are skipped, none above the skip threshold: ``skip_density``, where the caller
@@ -617,7 +636,8 @@ def reconstruct(
     uninterrupted run would have (runs on two device types never draw alike). Cancellation is
     checked before each iteration (``StageCancelled``); with ``checkpoint_path`` set, a cancelled
     run writes a checkpoint before it stops (through ``callbacks``, as the periodic ones; a best effort:
-    :func:`checkpoint_at_cancel`).
+    :func:`checkpoint_at_cancel`). A step whose loss is NaN or infinite, or a grid that is so where a stage ends or a
+    checkpoint is due, is :class:`FitDiverged` (nothing returned or written).
 
     Determinism: a run is reproducible under ``config.seed`` on the CPU; on CUDA only as far as
     the kernels are deterministic: the compositing's and the gradients' scatter-adds
@@ -695,13 +715,16 @@ def reconstruct(
             losses, out = train_step(grid, optimizer, rays, config, occupancy, generator, clear_rows)
             done += 1
             average.after_step(grid, iteration)
+            values = dict(zip(losses, torch.stack([loss.detach() for loss in losses.values()]).tolist()))
+            if not all(map(math.isfinite, values.values())):
+                raise FitDiverged(_diverged(config, stage, done, f"its loss is {values}"))
             callbacks.progress(Progress(
-                "reconstruct", done, total,
-                dict(zip(losses, torch.stack([loss.detach() for loss in losses.values()]).tolist())),
+                "reconstruct", done, total, values,
                 {"stage": stage, "resolution": config.resolutions[stage],
                  "samples_per_ray": out.samples / config.rays_per_step, **memory.info()},
             ))
             if checkpoint_path is not None and config.checkpoint_every and done % config.checkpoint_every == 0:
+                check_fit_finite(grid, config, stage, done)
                 checkpoint(stage, iteration + 1)
                 last_checkpoint = done
             # Within a stage, looked at only when the batch rendered nothing at all (a read of its opacity the
@@ -713,6 +736,7 @@ def reconstruct(
         if stopped_at is not None:
             break
         average.finish(grid)
+        check_fit_finite(grid, config, stage, done)
     if stopped_at is not None and grid.resolution != (config.resolutions[-1],) * 3:
         grid = grid.upsampled(config.resolutions[-1])
     if stopped_at is not None or renders_nothing(grid, config.render):  # its edit refuses it: said where it ran
