@@ -37,6 +37,7 @@ from voxe_core.refine.config import (
     SERVICE_CUT,
     AUTHORS_CODE_FIT,
     AUTHORS_CODE_MAPS,
+    MAX_ATTENTION_LR,
     PAPER_TEXT_CUT,
     PAPER_TEXT_FIT,
     PAPER_TEXT_MAPS,
@@ -828,6 +829,26 @@ def test_a_smoothness_beyond_float32_is_refused_and_the_largest_allowed_cuts_wit
     mask, stats = graph_cut_detailed(grid, e, -e, text_cut(smoothness=FLOAT32_MAX, edit_seeds=5, object_seeds=5))
     assert math.isfinite(stats.flow) and json.loads(json.dumps(stats.flow)) == stats.flow
     assert 0 < stats.edit_voxels < stats.nodes
+
+
+@pytest.mark.parametrize("name, largest", [("lr", MAX_ATTENTION_LR), ("init_value", FLOAT32_MAX),
+                                           ("tv_weight", FLOAT32_MAX)])
+def test_an_attention_fit_setting_beyond_float32_is_refused_and_the_largest_allowed_is_not(name, largest):
+    """An lr or init_value of 1e39 (an lr of 1e38, Adam's first step ten times it) had been accepted and failed the
+    fit, after every attention pass, as a RuntimeError naming no setting ("value cannot be converted to type float
+    without overflow"); a tv_weight of 1e39 had made both grids NaN."""
+    rule = ("must be at most 3.403e+37 (Adam's first step, ten times it, finite in float32)" if name == "lr" else
+            "must be at most 3.403e+38 in size (finite in float32)")
+    for value in (1e39, 1e38) if name == "lr" else (1e39, -1e39) if name == "init_value" else (1e39,):
+        with pytest.raises(ValueError, match=f"^{re.escape(f'{name} {rule}, got {value}')}$"):
+            RefineConfig(**{name: value})
+    assert getattr(RefineConfig(**{name: largest}), name) == largest
+    if name == "lr":  # the fit's optimizer takes its first step at the largest lr, and refuses one a hair above it
+        for lr, fails in ((largest, False), (largest * (1 + 1e-7), True)):
+            values = torch.zeros(3, requires_grad=True)
+            values.grad = torch.ones(3)
+            with pytest.raises(RuntimeError, match="overflow") if fails else contextlib.nullcontext():
+                torch.optim.Adam([values], lr=lr).step()
 
 
 def test_a_seed_outside_the_services_range_is_refused_and_its_ends_cut():

@@ -37,6 +37,10 @@ from voxe_core.render import RenderConfig
 from voxe_core.tensorio import check_flags, check_numbers
 
 
+MAX_ATTENTION_LR = FLOAT32_MAX * (1 - 0.9)
+"""The largest lr of the attention-grid fit: torch's Adam (betas (0.9, 0.999)) takes its first step as lr / (1 - 0.9)."""
+
+
 class SegmentationError(ValueError):
     """The graph cut cannot run: nothing occupied, no seeds, or mismatched inputs."""
 
@@ -218,6 +222,17 @@ class RefineConfig:
             raise ValueError(f"tv_weight must be non-negative and finite, got {self.tv_weight}")
         if not math.isfinite(self.init_value):
             raise ValueError(f"init_value must be a finite number, got {self.init_value}")
+        # In the float32 the fit runs in: an lr or init_value past it (1e39) had passed here and failed the fit, after
+        # every attention pass, as a RuntimeError naming no setting ("value cannot be converted to type float
+        # without overflow"), a tv_weight made both grids NaN. So had an lr within a tenth of it: torch's Adam (the
+        # fit's, betas (0.9, 0.999)) takes its first step as lr / (1 - 0.9) in float32.
+        if self.lr > MAX_ATTENTION_LR:
+            raise ValueError(f"lr must be at most {MAX_ATTENTION_LR:.4g} (Adam's first step, ten times it, finite in "
+                             f"float32), got {self.lr}")
+        for name in ("tv_weight", "init_value"):
+            if abs(getattr(self, name)) > FLOAT32_MAX:
+                raise ValueError(f"{name} must be at most {FLOAT32_MAX:.4g} in size (finite in float32), got "
+                                 f"{getattr(self, name)}")
         if not 0.0 <= self.object_seed_margin < 1.0:
             raise ValueError(f"object_seed_margin must lie in [0, 1), got {self.object_seed_margin}")
         if len(self.render.background) not in (1, 2):  # (a RenderConfig's default white had crashed the fit)
