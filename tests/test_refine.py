@@ -575,6 +575,46 @@ def test_a_constant_start_too_short_to_part_the_grids_is_named_with_its_remedy(m
     assert not torch.equal(edit, obj)
 
 
+def test_an_attention_fit_that_diverges_stops_at_the_step_that_finds_it_naming_its_settings(make_sphere_grid,
+                                                                                           monkeypatch):
+    """An lr the config accepts (1e30) overflowed the grids to inf and NaN by the second step: every step left had run
+    (with fresh views a diffusion pass each) and the NaN grids reached the cut, refused there as "a diverged edit or
+    attention-grid fit?". The fit now stops at the first step whose loss is not finite, reporting no progress for it,
+    and a last step whose update overflowed (its loss finite) is found where the fit ends."""
+    grid, cams = make_sphere_grid(10), cameras_around(4, 12, seed=1)
+    edit_maps = torch.linspace(0.2, 0.9, 12).expand(4, 12, 12)
+    config = RefineConfig(iterations=10, rays_per_step=256, fit_views="fixed", fit_pixels="all", lr=1e30)
+    seen = []
+    with pytest.raises(SegmentationError, match=r"^the attention-grid fit diverged by iteration 2 of 10: its loss is "
+                                                r"(inf|nan) \(L1 .*, TV .*\); its steps overflowed float32: lower lr or "
+                                                r"tv_weight \(now 1e\+30 and 0.01\)$"):
+        fit_attention_grids(grid, cams, edit_maps, edit_maps.flip(-1), config,
+                            Callbacks(on_progress=lambda p: seen.append((p.stage, p.iteration))))
+    assert seen[-1] == ("attention_grids", 1)
+    step = torch.optim.Adam.step
+
+    def overflowing(self, *args, **kwargs):  # as an update past float32 would leave it
+        result = step(self, *args, **kwargs)
+        with torch.no_grad():
+            self.param_groups[0]["params"][0][0, 1] = math.inf
+        return result
+
+    monkeypatch.setattr(torch.optim.Adam, "step", overflowing)
+    with pytest.raises(SegmentationError, match=r"^the attention-grid fit diverged by iteration 1 of 1: the grids hold "
+                                                r"NaN or infinite values at 1 of their 1000 vertices; its steps overflowed "
+                                                r"float32: lower lr or tv_weight \(now 0.035 and 0.01\)$"):
+        fit_attention_grids(grid, cams, edit_maps, edit_maps.flip(-1), dataclasses.replace(config, lr=0.035,
+                                                                                           iterations=1))
+    monkeypatch.undo()
+    with torch.no_grad():  # a NaN density makes the loss NaN from the first step: no fault of the lr
+        grid.features[5, 5, 5, 0] = math.nan
+    for iterations in (0, 5):
+        with pytest.raises(SegmentationError, match=r"^the edited grid's density is NaN at 1 of its 1000 vertices, so "
+                                                    r"what the views see through it is undefined"):
+            fit_attention_grids(grid, cams, edit_maps, edit_maps.flip(-1),
+                                dataclasses.replace(config, lr=0.035, iterations=iterations))
+
+
 @pytest.mark.parametrize("cause", ["maps equal", "every fresh view missed", "the paper's iterations"])
 def test_a_constant_start_left_equal_names_its_cause(make_sphere_grid, monkeypatch, cause):
     """The error had always said "fit more iterations (the paper: 1500)": wrong for maps that never differ, for fresh

@@ -15,6 +15,7 @@ not empty); the rest keep "no attention" (0) as the start says.
 
 from __future__ import annotations
 
+import math
 from typing import Callable
 
 import torch
@@ -177,6 +178,11 @@ def _why_still_equal(config: RefineConfig, fitted: int, maps_differ: bool) -> st
             f"{config.init_value})")
 
 
+def _diverged(config: RefineConfig, iteration: int, what: str) -> str:
+    return (f"the attention-grid fit diverged by iteration {iteration} of {config.iterations}: {what}; its steps "
+            f"overflowed float32: lower lr or tv_weight (now {config.lr:g} and {config.tv_weight:g})")
+
+
 def fit_attention_grids(
     grid: VoxelGrid,
     cameras: Cameras,
@@ -205,7 +211,9 @@ def fit_attention_grids(
     work, from either start, where the fit sees only them (``fit_views="fixed"``), as are maps equal on every pixel
     the back-projection reads with no iterations, and so is a back-projection a ``backprojection_prior`` that
     outweighs the pixels leaves equal but for rounding. So are views that miss the object, and a back-projection whose
-    pixels see none of its density (the fit moves only the vertices they see).
+    pixels see none of its density (the fit moves only the vertices they see), and a fit that diverges: a step whose
+    loss is NaN or infinite stops it, as do grids that are so where it ends (a grid whose density is NaN is refused
+    before any work).
     """
     if edit_maps.dim() != 3:  # (had failed unpacking its shape: "too many values to unpack (expected 3)")
         raise ValueError(f"the maps must be (views, height, width), one scalar per pixel, got edit maps of shape "
@@ -224,6 +232,11 @@ def fit_attention_grids(
         if bad:
             raise SegmentationError(f"the {name} maps are not finite (NaN or infinite) in {len(bad)} of the {n_views} "
                                     f"views (the first: view {bad[0] + 1}): there is no attention to lift there")
+    # (a step on it had been taken for the fit's divergence: its loss is NaN from the first)
+    if nan := int(torch.isnan(grid.features[..., 0].detach()).sum()):
+        raise SegmentationError(f"the edited grid's density is NaN at {nan} of its {math.prod(grid.resolution)} "
+                                "vertices, so what the views see through it is undefined (a diverged edit or a "
+                                "corrupted grid?): there is no attention to lift")
     device = grid.bbox_min.device
     frozen = frozen_density(grid)
     occupancy = attention_occupancy(frozen, config)
@@ -313,9 +326,17 @@ def fit_attention_grids(
         loss.backward()
         optimizer.step()
         fitted += 1
+        l1_value, tv_value, loss_value = torch.stack([l1.detach(), tv.detach(), loss.detach()]).tolist()
+        if not math.isfinite(loss_value):  # (every step left had run, fresh views a diffusion pass each, for the cut to
+            # refuse the NaN grids as "a diverged edit or attention-grid fit?")
+            raise SegmentationError(_diverged(config, iteration + 1, f"its loss is {loss_value} (L1 {l1_value}, TV "
+                                                                     f"{tv_value})"))
         callbacks.progress(Progress("attention_grids", iteration + 1, config.iterations,
-                                    {"l1": float(l1.detach()), "tv": float(tv.detach())}, {"stage": "attention grids"}))
+                                    {"l1": l1_value, "tv": tv_value}, {"stage": "attention grids"}))
     values = flat_start.index_copy(0, rows, active.detach()).reshape(start.shape)
+    if nonfinite := int((~values.isfinite()).any(-1).sum()):  # a last step whose loss was finite can overflow its update
+        raise SegmentationError(_diverged(config, config.iterations, f"the grids hold NaN or infinite values at "
+                                          f"{nonfinite} of their {math.prod(start.shape[:3])} vertices"))
     if config.lift_start == "constant" and prefer_neither(values[..., 0], values[..., 1]):  # the cut has no seeds
         raise SegmentationError(f"the attention grids are still equal everywhere after {config.iterations} fitting "
                                 f"iterations from lift_start='constant': {_why_still_equal(config, fitted, maps_differ)}")
