@@ -1038,6 +1038,24 @@ def test_all_equal_probabilities_have_no_seeds():
         graph_cut(grid, torch.full(grid.resolution, 0.7), torch.full(grid.resolution, 0.7))
 
 
+def test_a_cut_asked_for_no_seeds_is_labelled_by_its_unary_term_or_refused_before_any_work_without_one():
+    """Seed counts of 0, which the config takes, had been refused by the cut as "no seeds: none of the occupied
+    voxels is more likely edit than object ... the attention grids are equal everywhere", though they differed and
+    the paper's energy (its unary term) labels every voxel without seeds. Without a unary term nothing would, so
+    that config is refused when it is made."""
+    grid, truth = two_blobs()
+    e = torch.where(truth, 1.0, -1.0)
+    mask, stats = graph_cut_detailed(grid, e, -e, text_cut(edit_seeds=0, object_seeds=0))
+    assert (stats.edit_seeds, stats.object_seeds, stats.notes) == (0, 0, [])
+    assert torch.equal(mask, truth)
+    with pytest.raises(ValueError, match=r"^edit_seeds=0 and object_seeds=0 under edit_seed_rule='top' seed no voxel, "
+                                         r"and with unseeded_unary='none' nothing else labels one"):
+        text_cut(edit_seeds=0, object_seeds=0, unseeded_unary="none")
+    with pytest.raises(SegmentationError, match="no seeds"):  # grids that prefer nothing still cut nothing
+        graph_cut(grid, torch.full(grid.resolution, 0.7), torch.full(grid.resolution, 0.7),
+                  text_cut(edit_seeds=0, object_seeds=0))
+
+
 def test_fewer_candidates_than_seeds_uses_what_exists():
     grid, truth = two_blobs()
     e = torch.where(truth, 1.0, -1.0)

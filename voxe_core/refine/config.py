@@ -233,6 +233,13 @@ class RefineConfig:
             if abs(getattr(self, name)) > FLOAT32_MAX:
                 raise ValueError(f"{name} must be at most {FLOAT32_MAX:.4g} in size (finite in float32), got "
                                  f"{getattr(self, name)}")
+        # Nothing but seeds labels a voxel without a unary term, and these ask for none (the cut had blamed the grids,
+        # "none of the occupied voxels is more likely edit than object", after every attention pass).
+        if (self.unseeded_unary == "none" and self.edit_seed_rule == "top" and not self.edit_seeds
+                and not self.object_seeds):
+            raise ValueError("edit_seeds=0 and object_seeds=0 under edit_seed_rule='top' seed no voxel, and with "
+                             "unseeded_unary='none' nothing else labels one, so the cut would be undefined: ask for "
+                             "seeds, or use unseeded_unary='log_probability'")
         if not 0.0 <= self.object_seed_margin < 1.0:
             raise ValueError(f"object_seed_margin must lie in [0, 1), got {self.object_seed_margin}")
         if len(self.render.background) not in (1, 2):  # (a RenderConfig's default white had crashed the fit)

@@ -262,10 +262,12 @@ def graph_cut_detailed(
     ``object_seeds`` drawn at random (``seed``) among P_obj > P_e + margin, or when none qualifies the
     ``object_seed_fallback`` highest P_obj whatever their preference ("random"); or the ``object_seeds``
     highest P_obj among P_obj > ½ ("top"). A node in both sets stays an edit seed. When fewer seeds
-    than asked qualify, the available ones are used and ``stats.notes`` (and a warning) says so.
+    than asked qualify, the available ones are used and ``stats.notes`` (and a warning) says so; with the unary term
+    (``unseeded_unary="log_probability"``) none need to (counts of 0 too): the energy labels every voxel.
     Raises :class:`SegmentationError` when no node is occupied, when the grid's density is NaN where
-    ``node_mask`` reads it, when a field or the grid's colour is not finite at a node, or when no node qualifies
-    as a seed of either label (the grids carry no preference anywhere, e.g. all-equal probabilities).
+    ``node_mask`` reads it, when a field or the grid's colour is not finite at a node, when no node qualifies
+    as a seed of either label and there is no unary term, or when the grids carry no preference anywhere (e.g.
+    all-equal probabilities).
     """
     import maxflow
 
@@ -299,8 +301,10 @@ def graph_cut_detailed(
     else:
         edit_seeds = _top_seeds(p_e, p_e > 0.5, config.edit_seeds)
     object_seeds = np.setdiff1d(object_seed_indices(p_e, p_o, config), edit_seeds)  # a fallback may overlap
-    # (a fallback seeds no preference; on CUDA equal grids differ by rounding alone)
-    if edit_seeds.size + object_seeds.size == 0 or prefer_neither(edit_field[nodes], object_field[nodes]):
+    # (a fallback seeds no preference; on CUDA equal grids differ by rounding alone). With a unary term the energy
+    # labels every voxel without seeds (seed counts of 0 had been refused here, blaming grids that differed).
+    seedless = edit_seeds.size + object_seeds.size == 0 and config.unseeded_unary == "none"
+    if seedless or prefer_neither(edit_field[nodes], object_field[nodes]):
         raise SegmentationError(
             f"no seeds: none of the {n} occupied voxels is more likely edit than object or the reverse "
             "(the attention grids are equal everywhere: too few fitting iterations, or maps that do not tell "
