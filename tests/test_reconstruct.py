@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import gc
 import math
+import re
 from dataclasses import replace
 
 import pytest
@@ -317,6 +318,21 @@ def test_averaging_returns_the_mean_of_the_final_iterates():
 ])
 def test_a_config_no_fit_can_run_is_refused_when_it_is_made(field, value, message):
     with pytest.raises(ValueError, match=message):
+        tiny_config(**{field: value})
+
+
+@pytest.mark.parametrize("field, value, message", [
+    ("lr", "3e-2", "lr must be a number, got '3e-2'"),  # (YAML 1.1 reads 3e-2 as a string)
+    ("lr", True, "lr must be a number, got True"),
+    ("tv_density", None, "tv_density must be a number, got None"),
+    ("camera_clearance", "0.4", "camera_clearance must be a number, got '0.4'"),
+    ("average_from", True, "average_from must be a number, got True"),
+    ("render", None, "render must be a RenderConfig, got None"),
+])
+def test_a_setting_of_another_type_is_refused_naming_it(field, value, message):
+    """As RefineConfig's and EditConfig's: a string had failed a range test naming no setting ("'<' not supported
+    between instances of 'int' and 'str'"), True had run as 1 (an lr of 1), render=None failed as the fit started."""
+    with pytest.raises(ValueError, match=f"^{re.escape(message)}$"):
         tiny_config(**{field: value})
 
 

@@ -28,7 +28,7 @@ from voxe_core.grid import Activation, Occupancy, VoxelGrid
 from voxe_core.losses import sampled_total_variation
 from voxe_core.progress import Callbacks, Progress, StageCancelled
 from voxe_core.render import RenderConfig, render_rays
-from voxe_core.tensorio import FormatError, config_recipe, load_tensors, recipe_changes, save_tensors
+from voxe_core.tensorio import FormatError, check_numbers, config_recipe, load_tensors, recipe_changes, save_tensors
 
 CHECKPOINT_FORMAT_VERSION = 1
 CHECKPOINT_KIND = "reconstruction_checkpoint"
@@ -105,6 +105,13 @@ class ReconstructConfig:
             if any(isinstance(v, bool) or not isinstance(v, numbers.Integral)
                    for v in (value if name in PER_STAGE_FIELDS else (value,))):
                 raise ValueError(f"{name} takes whole numbers, got {value!r}")
+        # As RefineConfig's and EditConfig's: a string (YAML 1.1 reads 3e-2 as one) had failed a range test below naming
+        # no setting ("'<' not supported between instances of 'int' and 'str'"), True had run as 1 (lr=True: lr 1),
+        # and render=None failed at the fit's start ("'NoneType' object has no attribute 'skip_empty'").
+        check_numbers(self, ("lr", "lr_stage_decay", "lr_drop_factor", "color_lr_scale", "init_density",
+                             "average_from", "tv_density", "tv_color", "camera_clearance"))
+        if not isinstance(self.render, RenderConfig):
+            raise ValueError(f"render must be a RenderConfig, got {self.render!r}")
         if not 0 <= self.seed <= MAX_SEED:
             raise ValueError(f"seed must lie in [0, {MAX_SEED}] (the service's and the CLI's range), got {self.seed}")
         if self.rays_per_step < 1:
