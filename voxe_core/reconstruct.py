@@ -23,7 +23,7 @@ import torch.nn.functional as F
 from voxe_core.backbones import grid_from_state
 from voxe_core.cameras import Cameras, check_views, pixel_rays
 from voxe_core.constants import FLOAT32_MAX, MAX_SEED
-from voxe_core.devices import PeakMemory, resolve_device
+from voxe_core.devices import PeakMemory, full_precision, resolve_device
 from voxe_core.grid import Activation, Occupancy, VoxelGrid
 from voxe_core.losses import sampled_total_variation
 from voxe_core.progress import Callbacks, Progress, StageCancelled
@@ -426,7 +426,8 @@ def train_step(
     # No sample in occupied space (e.g. an object-free, all-white scene whose density has
     # died): the batch rendered pure background, nothing here depends on the grid.
     if loss.requires_grad:
-        loss.backward()
+        with full_precision(loss):  # (under a caller's autocast the render's backward had run its products in bf16)
+            loss.backward()
         optimizer.step()
     if clear_rows is not None and clear_rows.numel():
         with torch.no_grad():
