@@ -22,6 +22,7 @@ import torch
 
 from voxe_core.cameras import Cameras, camera_rays
 from voxe_core.constants import REFINE_ITERATIONS
+from voxe_core.devices import full_precision
 from voxe_core.grid import Occupancy, VoxelGrid, ray_box_intersection, unit_directions
 from voxe_core.progress import Callbacks, Progress
 from voxe_core.refine.config import RefineConfig, SegmentationError
@@ -110,7 +111,8 @@ def backproject(
                                       config.render.pass_samples(o.device), config.render.early_stop):
             if group.ray.numel() == 0:
                 continue
-            sigma = grid.activate_density(grid.interpolate(group.points)[:, 0])
+            with full_precision(group.points):  # (a caller's autocast had run the interpolation's bmm in bf16)
+                sigma = grid.activate_density(grid.interpolate(group.points)[:, 0])
             optical = optical_depth(sigma, group.delta)
             w = transmittance(optical, group.ray) * (-torch.expm1(-optical))
             index, tri = grid.trilinear_corners(group.points)
