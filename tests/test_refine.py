@@ -424,6 +424,18 @@ def test_a_smoothing_sigma_below_float32s_smallest_blurs_nothing(sigma):
                                postprocess_maps(maps, (40, 40), dataclasses.replace(config, smoothing_sigma=0.0)))
 
 
+@pytest.mark.parametrize("maps_config", [SERVICE_MAPS, AUTHORS_CODE_MAPS, PAPER_TEXT_MAPS])
+def test_maps_postprocessed_under_a_callers_bf16_autocast_are_the_float32_ones(maps_config):
+    """The blurs' conv2d had run in bf16 under a caller's autocast: bf16 maps up to 0.014 off the float32 ones, which
+    the attention grids were then fitted to."""
+    maps = torch.rand(2, 16, 16, generator=torch.Generator().manual_seed(0))
+    config = RefineConfig(**maps_config)
+    reference = postprocess_maps(maps, (266, 266), config)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        mixed = postprocess_maps(maps, (266, 266), config)
+    assert mixed.dtype == torch.float32 and torch.equal(mixed, reference)
+
+
 @pytest.mark.parametrize("sigma", [16 / 3, 1e4, 1e12, FLOAT32_MAX])
 def test_a_3sigma_kernel_wider_than_the_maps_is_refused_and_the_3x3_one_takes_any_sigma(sigma):
     """A "3sigma" kernel has 2·ceil(3σ) + 1 taps: σ = 1e4 had taken 38 s a 266 px view (one CPU thread), 1e12 asked

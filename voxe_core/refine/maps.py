@@ -18,6 +18,7 @@ import torch
 import torch.nn.functional as F
 
 from voxe_core.cameras import Cameras, random_hemisphere_poses
+from voxe_core.devices import full_precision
 from voxe_core.grid import VoxelGrid
 from voxe_core.guidance.prompts import check_edit_words_name_an_edit, edit_prompt, pose_view_word, without_view_word
 from voxe_core.progress import Callbacks, Progress
@@ -133,14 +134,16 @@ def combine_token_maps(
 def postprocess_maps(maps: torch.Tensor, size: tuple[int, int], config: RefineConfig = RefineConfig()) -> torch.Tensor:
     """Smooth (in map pixels) -> bilinear upsample to ``size`` [-> smooth again] [-> min-max normalise]: (N, h, w) -> (N, H, W).
 
-    ``config``: ``smoothing_sigma``, ``smoothing_kernel``, ``smooth_upsampled`` and ``map_scale``.
+    ``config``: ``smoothing_sigma``, ``smoothing_kernel``, ``smooth_upsampled`` and ``map_scale``. In float32 whatever
+    autocast says (under a caller's bf16 autocast the blurs' conv2d had returned bf16 maps, up to 0.014 off).
     """
     radius = 1 if config.smoothing_kernel == "3x3" else None
-    smoothed = gaussian_blur2d(maps.float(), config.smoothing_sigma, radius)
-    up = F.interpolate(smoothed[:, None], size=size, mode="bilinear", align_corners=False)[:, 0]
-    if config.smooth_upsampled:
-        up = gaussian_blur2d(up, config.smoothing_sigma, radius)
-    return normalize_maps(up) if config.map_scale == "minmax" else up
+    with full_precision(maps):
+        smoothed = gaussian_blur2d(maps.float(), config.smoothing_sigma, radius)
+        up = F.interpolate(smoothed[:, None], size=size, mode="bilinear", align_corners=False)[:, 0]
+        if config.smooth_upsampled:
+            up = gaussian_blur2d(up, config.smoothing_sigma, radius)
+        return normalize_maps(up) if config.map_scale == "minmax" else up
 
 
 @torch.no_grad()
