@@ -1,8 +1,10 @@
-"""The grid's slab test (``ray_box_intersection``): a closed box, a ray lying in any of its faces meets it."""
+"""The grid's box: its slab test (``ray_box_intersection``: a closed box, a ray lying in any of its faces meets it), and
+its corners, three numbers each."""
 
 from __future__ import annotations
 
 import math
+import re
 
 import pytest
 import torch
@@ -93,3 +95,24 @@ def test_a_ray_in_a_face_of_a_grid_whose_lattice_rounds_inside_it_meets_the_occu
         out = render_rays(grid, origins, directions, RenderConfig(fused=fused, skip_empty=skip_empty))
         assert isinstance(out.samples, torch.Tensor) == fused  # the marcher asked for ran
         torch.testing.assert_close(out.opacity, torch.full((12,), opacity), atol=1e-5, rtol=0)
+
+
+@pytest.mark.parametrize("bbox_min, bbox_max", [((-1.0, -1.0), (1.0, 1.0)), ((-1.0,) * 4, (1.0,) * 4), (-1.5, 1.5),
+                                                ("a", "b")])
+def test_a_box_whose_corners_are_not_three_numbers_is_refused_naming_it(bbox_min, bbox_max):
+    """Two numbers a corner had failed building the lattice ("The size of tensor a (2) must match the size of tensor b
+    (3)", a RuntimeError the CLI shows as a bug), one number "'float' object is not iterable"; a fit of such a
+    ReconstructConfig box failed so as it started."""
+    from voxe_core.cameras import Cameras, look_at
+    from voxe_core.reconstruct import ReconstructConfig, reconstruct
+
+    message = (r"^the box's corners must be three numbers each \(x, y, z\), got min " + re.escape(repr(bbox_min))
+               + " and max " + re.escape(repr(bbox_max)) + "$")
+    with pytest.raises(ValueError, match=message):
+        VoxelGrid(4, bbox_min, bbox_max)
+    cams = Cameras.from_fov(look_at(torch.tensor([[0.0, -4.0, 1.0]])), 0.7, 4, 4)
+    with pytest.raises(ValueError, match=message):
+        reconstruct(torch.ones(1, 4, 4, 3), cams, ReconstructConfig(resolutions=(4,), iterations=(1,),
+                                                                    image_downsample=(1,), bbox_min=bbox_min,
+                                                                    bbox_max=bbox_max))
+    assert VoxelGrid(4, [-1, -1, -1], torch.ones(3)).bbox_max.tolist() == [1.0, 1.0, 1.0]

@@ -277,8 +277,16 @@ class VoxelGrid(torch.nn.Module):
         # The box on the host (its scalars below, and ``like`` building grids on any device from it), and as
         # buffers on the device of the features (or of a given box tensor), so every grid's tensors share one.
         device = features.device if features is not None else getattr(bbox_min, "device", torch.device("cpu"))
-        host_min = torch.as_tensor(bbox_min, dtype=torch.float32).cpu()
-        host_max = torch.as_tensor(bbox_max, dtype=torch.float32).cpu()
+        try:
+            host_min = torch.as_tensor(bbox_min, dtype=torch.float32).cpu()
+            host_max = torch.as_tensor(bbox_max, dtype=torch.float32).cpu()
+        except (TypeError, ValueError, RuntimeError):
+            host_min = host_max = None
+        # (two numbers had failed building the lattice, "The size of tensor a (2) must match the size of tensor b
+        # (3)", one "'float' object is not iterable", naming no box)
+        if host_min is None or host_min.shape != (3,) or host_max.shape != (3,):
+            raise ValueError(f"the box's corners must be three numbers each (x, y, z), got min {bbox_min!r} and max "
+                             f"{bbox_max!r}")
         if not bool((torch.isfinite(host_min) & torch.isfinite(host_max)).all()):
             raise ValueError(f"the box must be finite: min {host_min.tolist()} max {host_max.tolist()}")
         if not bool((host_max > host_min).all()):
