@@ -480,6 +480,16 @@ def test_mismatched_images_and_cameras_are_rejected():
         reconstruct(images[:3], cams, tiny_config())
 
 
+@pytest.mark.parametrize("height, width", [(0, 4), (4, 0)])
+def test_images_of_no_pixels_are_refused_naming_their_size(height, width):
+    """Cameras of a zero side and images to match had passed the checks and failed resampling the first stage's
+    images ("adaptive_avg_pool2d(): Expected input to have non-zero size ...", a RuntimeError the CLI shows as a
+    bug)."""
+    cams = Cameras.from_fov(look_at(torch.tensor([[0.0, -4.0, 1.0], [4.0, 0.0, 1.0]])), 0.7, width, height)
+    with pytest.raises(ValueError, match=rf"^images of {height}x{width} pixels hold no pixel to fit$"):
+        reconstruct(torch.ones(2, height, width, 3), cams, tiny_config(), Callbacks(on_progress=pytest.fail))
+
+
 @pytest.mark.parametrize("what,message", [
     ("rgba", r"must be \(N, H, W, 3\) floating-point RGB in \[0, 1\] on white, got \(6, 16, 16, 4\)"),  # a reshape's
     ("grey", r"must be \(N, H, W, 3\) floating-point RGB .* got \(6, 16, 16, 1\)"),  # error, an IndexError

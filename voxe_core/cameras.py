@@ -157,6 +157,8 @@ def check_views(images: torch.Tensor, cameras: Cameras, what: str = "images") ->
     if images.shape[0] != len(cameras) or tuple(images.shape[1:3]) != (cameras.height, cameras.width):
         raise ValueError(f"{images.shape[0]} {what} of {tuple(images.shape[1:3])} do not match "
                          f"{len(cameras)} cameras of {(cameras.height, cameras.width)}")
+    if images.shape[0] and 0 in images.shape[1:3]:  # (a fit had failed resampling them: adaptive_avg_pool2d's error)
+        raise ValueError(f"{what} of {images.shape[1]}x{images.shape[2]} pixels hold no pixel to fit")
     if images.numel():
         low, high = images.aminmax()
         if not (low >= 0 and high <= 1):  # as "not in range": NaN fails every comparison
