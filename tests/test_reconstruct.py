@@ -311,6 +311,9 @@ def test_averaging_returns_the_mean_of_the_final_iterates():
     ("resolutions", "12", "resolutions takes one whole number per stage, got '12'"),
     # each had named no value (nor, for the entries, which setting had how many)
     ("iterations", (15, -1), r"iterations must be >= 0 per stage, got \[15, -1\]"),
+    # the untrained grid, a fog of init_density, had been returned (a job's stored and edited) as the fit
+    ("iterations", (0, 0), r"^iterations are 0 in every stage \(\[0, 0\]\): the fit would take no step and return "
+                           r"its initial grid untrained \(its init_density everywhere, a fog\); give a stage steps$"),
     ("rays_per_step", 0, "rays_per_step must be >= 1, got 0"),
     ("average_from", 1.5, r"average_from must lie in \[0, 1\] and average_every be >= 1, got 1\.5 and 8"),
     ("average_every", 0, r"average_from must lie in \[0, 1\] and average_every be >= 1, got 1\.0 and 0"),

@@ -118,6 +118,10 @@ class ReconstructConfig:
             raise ValueError(f"rays_per_step must be >= 1, got {self.rays_per_step}")
         if any(i < 0 for i in self.iterations):
             raise ValueError(f"iterations must be >= 0 per stage, got {list(self.iterations)}")
+        if not any(self.iterations):  # (the untrained grid had been returned, stored and edited as the fit)
+            raise ValueError(f"iterations are 0 in every stage ({list(self.iterations)}): the fit would take no step and "
+                             "return its initial grid untrained (its init_density everywhere, a fog); give a stage "
+                             "steps")
         if min(self.resolutions) < 2:  # as a grid's own refusal, but before any stage has run
             raise ValueError(f"grid resolutions must be at least 2, got {list(self.resolutions)}")
         if min(self.image_downsample) < 1:  # 0 had divided by zero after the earlier stages' work, -1 fitted 1x1 px
