@@ -395,6 +395,13 @@ def test_a_fit_whose_last_update_overflows_is_refused_where_its_stage_ends_or_be
                                               r"holds NaN or infinite features at \d+ of its 1728 vertices"):
             reconstruct(images, cams, last, checkpoint_path=path)
     assert not (tmp_path / "fit.ckpt").exists()
+    asked, warned = [], []  # canceled after that step: its checkpoint is not written, which is said; still a cancel
+    with pytest.raises(StageCancelled):
+        reconstruct(images, cams, replace(last, iterations=(2,), checkpoint_every=0), checkpoint_path=tmp_path / "fit.ckpt",
+                    callbacks=Callbacks(should_cancel=lambda: asked.append(None) or len(asked) > 1,
+                                        on_warning=lambda stage, message: warned.append(message)))
+    assert not (tmp_path / "fit.ckpt").exists()
+    assert "could not be written (FitDiverged: the reconstruction diverged by iteration 1" in warned[-1]
 
 
 def test_a_fit_under_a_callers_bf16_autocast_is_the_float32_fit():

@@ -684,6 +684,7 @@ def reconstruct(
         grid, generator, start_stage, start_iteration, resumed = _resume(resume_from, config, device, views)
 
     def checkpoint(stage: int, iteration: int) -> None:
+        check_fit_finite(grid, config, stage, done)  # (a cancel's too: its refusal is said, the earlier one stands)
         save_checkpoint(checkpoint_path, grid, optimizer, generator, occupancy.cells, stage, iteration, average,
                         config.recipe(), views)
         callbacks.checkpoint_written(str(checkpoint_path))
@@ -736,7 +737,6 @@ def reconstruct(
                  "samples_per_ray": out.samples / config.rays_per_step, **memory.info()},
             ))
             if checkpoint_path is not None and config.checkpoint_every and done % config.checkpoint_every == 0:
-                check_fit_finite(grid, config, stage, done)
                 checkpoint(stage, iteration + 1)
                 last_checkpoint = done
             # Within a stage, looked at only when the batch rendered nothing at all (a read of its opacity the
