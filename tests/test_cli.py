@@ -420,6 +420,37 @@ def test_wait_rides_out_the_outage_its_reconnect_for_allows_then_says_how_to_fol
                                        "connection refused\n") and clock[0] == 0
 
 
+def test_wait_reconnect_for_0_gives_up_at_the_first_loss_as_the_client_does(monkeypatch, capsys):
+    """``Client.wait(reconnect_for=0)`` gives up at the first loss, but ``voxe wait --reconnect-for 0`` had been
+    refused ("must be a positive number of seconds"); negative and infinite values still are."""
+    import httpx
+
+    import voxe_client.client as client_module
+    import voxe_core.cli.service as service
+    from voxe_client import Client
+
+    clock = [0.0]
+    monkeypatch.setattr(client_module.time, "monotonic", lambda: clock[0])
+    monkeypatch.setattr(client_module.time, "sleep", lambda seconds: clock.__setitem__(0, clock[0] + seconds))
+
+    def answer(request: httpx.Request) -> httpx.Response:
+        if "last-event-id" not in request.headers:  # the API stops, ending the stream
+            return httpx.Response(200, headers={"content-type": "text/event-stream"},
+                                  content=b'id: 8\nevent: checkpoint\ndata: {}\n\n')
+        raise httpx.ConnectError("connection refused")
+
+    monkeypatch.setattr(service, "_client", lambda args: Client(transport=httpx.MockTransport(answer)))
+    assert main(["wait", "j1", "--reconnect-for", "0"]) == 3
+    assert capsys.readouterr().err == (
+        "voxe wait: error: event stream of job j1 at http://127.0.0.1:8000 lost: the server ended the stream before "
+        "the job ended (1 attempt over 0 s, reconnecting for up to 0 s); the job goes on in the service: `voxe wait "
+        "j1` follows it again (--reconnect-for SECONDS rides out a longer outage)\n") and clock[0] == 0
+    for bad in ("-1", "inf"):
+        with pytest.raises(SystemExit):
+            main(["wait", "j1", "--reconnect-for", bad])
+        assert "must be 0 or a positive number of seconds, got" in capsys.readouterr().err
+
+
 def test_wait_on_a_job_deleted_meanwhile_says_it_was_deleted(monkeypatch, capsys):
     """The service ends the stream of a job deleted meanwhile (or of a key revoked) with an ``error`` event saying so;
     ``voxe wait`` then read the job and ended on that answer, "GET /v1/jobs/j1: HTTP 404: job 'j1' not found", as if

@@ -279,6 +279,15 @@ def positive_seconds(text: str) -> float:
     return value
 
 
+def non_negative_seconds(text: str) -> float:
+    """Seconds where 0 means "not at all" (``--reconnect-for 0``: give up at the first loss, as
+    ``Client.wait(reconnect_for=0)`` does; positive_seconds had refused it)."""
+    value = float(text)
+    if not 0 <= value < float("inf"):
+        raise argparse.ArgumentTypeError(f"must be 0 or a positive number of seconds, got {text!r}")
+    return value
+
+
 def finite_float(text: str) -> float:
     """A real-valued option, refused naming the option where it is no finite number (``inf``, ``nan``, ``1e400``): the
     setting it fills had refused it naming its own field, which no option is called (``--reg-weight inf``:

@@ -17,8 +17,8 @@ import warnings
 from pathlib import Path
 
 from voxe_core.cli.common import (
-    EXIT_INTERRUPTED, EXIT_SERVICE_FAILED, EXIT_USAGE, LOG_PROGRESS_INTERVAL_S, Interrupt, positive_seconds,
-    writable_file, writable_folder,
+    EXIT_INTERRUPTED, EXIT_SERVICE_FAILED, EXIT_USAGE, LOG_PROGRESS_INTERVAL_S, Interrupt, non_negative_seconds,
+    positive_seconds, writable_file, writable_folder,
 )
 from voxe_core.presets import EDIT_MODE, EDIT_MODES
 
@@ -125,10 +125,10 @@ def add_parsers(commands, common) -> None:
 
 def _add_reconnect_argument(parser: argparse.ArgumentParser) -> None:
     """``--reconnect-for``: how long following a job's events rides out a service that stopped answering."""
-    parser.add_argument("--reconnect-for", type=positive_seconds, default=None, metavar="SECONDS",
+    parser.add_argument("--reconnect-for", type=non_negative_seconds, default=None, metavar="SECONDS",
                         help="while following the job, keep reconnecting to a service that stopped answering (an "
-                             "API restart) this long before giving up (default 300; the job goes on in the service "
-                             "either way)")
+                             "API restart) this long before giving up (default 300; 0: give up at the first "
+                             "loss; the job goes on in the service either way)")
 
 
 def _add_idempotency_argument(parser: argparse.ArgumentParser, made: str) -> None:
