@@ -970,6 +970,19 @@ def test_the_readmes_voxe_commands_parse_as_written(capsys):
         except SystemExit:
             pytest.fail(f"README: `{command}` does not parse: {capsys.readouterr().err}")
 
+def test_an_elevation_past_a_pole_is_refused_naming_the_option_before_the_grid_is_read(tmp_path, capsys):
+    """``voxe render --ring 4 --elevation 120`` had been refused as "a turntable's elevation must lie ...", a
+    turntable it makes none of, once its grid was read; render and turntable now name --elevation, a grid that is
+    not there unread."""
+    grid = str(tmp_path / "missing.safetensors")
+    for command in (["render", grid, "--ring", "4", "--out", str(tmp_path / "r")],
+                    ["turntable", grid, "--out", str(tmp_path / "t.gif")]):
+        assert main([*command, "--elevation", "120"]) == 2
+        err = capsys.readouterr().err
+        assert "--elevation must lie between -90 and 90 degrees, got 120" in err and "turntable's" not in err
+        assert not (tmp_path / "r").exists() and not (tmp_path / "t.gif").exists()
+
+
 def test_options_a_command_would_ignore_are_refused(sphere_file, tmp_path, capsys):
     """render --data had taken --size / --elevation / --centre-of and rendered the dataset's cameras anyway;
     convert-grid --dense had taken --margin and written every vertex."""

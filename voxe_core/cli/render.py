@@ -67,6 +67,13 @@ def orbit_centre(args, grid):
     return (load_grid(args.centre_of) if args.centre_of is not None else grid).orbit_centre()
 
 
+def check_elevation(elevation: float) -> None:
+    """``--elevation`` past a pole, refused by the option's name before the grid is read: turntable_cameras had
+    refused it after, as "a turntable's elevation must lie ...", which ``voxe render --ring`` makes none of."""
+    if not -90.0 <= elevation <= 90.0:
+        raise ValueError(f"--elevation must lie between -90 and 90 degrees, got {elevation:g}")
+
+
 def cmd_render(args) -> int:
     from voxe_core.backbones import load_grid
     from voxe_core.export import turntable_cameras
@@ -79,6 +86,8 @@ def cmd_render(args) -> int:
     if args.ring is not None and (dataset_only := view_options_given(args)):  # (as were these)
         raise ValueError(f"{', '.join(dataset_only)} set how --data's images are read; --ring reads no dataset "
                          "(--size sets its views' size)")
+    if args.elevation is not None:
+        check_elevation(args.elevation)
     writable_folder(args.out)
     grid = load_grid(args.grid)
     scene = None
@@ -181,6 +190,7 @@ def cmd_turntable(args) -> int:
 
     check_video_output(args.out, args.fps)  # fail before rendering, not after
     check_video_size(args.out, args.size, args.size)
+    check_elevation(args.elevation)
     device = check_device(args)
     writable_file(args.out)  # (a folder not writable had failed after the render, imageio's traceback beside it)
     grid = load_grid(args.grid)
