@@ -282,6 +282,31 @@ def test_ctrl_c_during_a_waited_sweeps_pause_stops_waiting_at_once(monkeypatch, 
     assert capsys.readouterr().err.endswith("voxe sweep: stopped waiting; the sweep s1 goes on in the service\n")
 
 
+def test_ctrl_c_during_a_waited_sweep_writes_no_summary_as_if_final(monkeypatch, capsys, tmp_path):
+    """``--out FILE`` is "the final summary JSON", but a Ctrl-C had written the last poll there, a sweep still
+    running, as if it were: nothing is written now (an earlier FILE stays as it was), and the command says so."""
+    import threading
+
+    import voxe_core.cli.service as service
+
+    def ctrl_c_while_waiting():
+        while signal.getsignal(signal.SIGINT) is default:
+            time.sleep(0.01)
+        time.sleep(0.2)
+        os.kill(os.getpid(), signal.SIGINT)
+
+    out = tmp_path / "s.json"
+    out.write_text("earlier")
+    monkeypatch.setattr(service, "_client", lambda args: FakeSweeps(["running"] * 1000, {"running": 12}))
+    default = signal.getsignal(signal.SIGINT)
+    threading.Thread(target=ctrl_c_while_waiting, daemon=True).start()
+    assert main(["sweep", "--scene", "s1=mic", "--wait", "--poll", "0.01", "--out", str(out)]) == 130
+    assert out.read_text() == "earlier"
+    assert capsys.readouterr().err.endswith(
+        f"voxe sweep: {out} not written: the sweep had not ended (GET /v1/sweeps/s1 gives its summary)\n"
+        "voxe sweep: stopped waiting; the sweep s1 goes on in the service\n")
+
+
 def test_a_waited_sweep_polls_on_through_an_outage_for_as_long_as_wait_reconnects(monkeypatch, capsys, tmp_path):
     """One poll refused (an API restarting) had ended ``voxe sweep --wait`` with exit 3 and no --out, and no command
     takes the wait up again: polls the service fails or does not answer go on for ``RECONNECT_FOR_S``, said once;

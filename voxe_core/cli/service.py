@@ -118,7 +118,9 @@ def add_parsers(commands, common) -> None:
                     "answering for up to 300 s")
     sw.add_argument("--poll", type=positive_seconds, default=None, metavar="SECONDS",  # checked before the sweep
                     help=f"with --wait: seconds between polls (default {SWEEP_POLL_S:g})")
-    sw.add_argument("--out", type=Path, default=None, metavar="FILE", help="also write the final summary JSON here")
+    sw.add_argument("--out", type=Path, default=None, metavar="FILE",
+                    help="also write the sweep's JSON here: with --wait its final summary (nothing is written when "
+                         "the wait is interrupted, the sweep not ended), without it the sweep as queued")
     _add_idempotency_argument(sw, "the sweep the first run made")
     sw.set_defaults(run=cmd_sweep)
 
@@ -380,7 +382,9 @@ def cmd_sweep(args) -> int:
                         failing_since = _poll_failed(exc, failing_since)
         except ServiceError as exc:
             return _service_error("sweep", exc)
-    if args.out is not None:
+    # (a Ctrl-C's had written the last poll's, a sweep still running, where the final summary was promised)
+    unfinished = interrupt.requested and sweep["state"] in ("queued", "running")
+    if args.out is not None and not unfinished:
         with replacing(args.out) as partial:  # whole or not at all: a full disk had left it torn
             partial.write_text(json.dumps(sweep, indent=2))
     if not args.wait:  # just queued: its table had been printed with no row, the sweep's id nowhere on stdout
@@ -390,6 +394,9 @@ def cmd_sweep(args) -> int:
         return 0
     print(sweep["table"], end="")
     if interrupt.requested:
+        if args.out is not None and unfinished:
+            print(f"voxe sweep: {args.out} not written: the sweep had not ended (GET /v1/sweeps/{sweep['id']} gives "
+                  "its summary)", file=sys.stderr)
         print(f"voxe sweep: stopped waiting; the sweep {sweep['id']} goes on in the service", file=sys.stderr)
         return EXIT_INTERRUPTED
     if sweep["state"] != "succeeded":  # as voxe wait: a script must see what did not succeed
