@@ -217,6 +217,27 @@ def test_a_write_removes_the_partial_files_of_writers_killed_mid_write_but_not_a
             process.wait(timeout=30)
 
 
+def test_a_write_removes_the_partial_file_a_writer_killed_before_partial_files_had_tokens_left(tmp_path):
+    """Before each writer had a partial file of its own, a file's one was .<stem>.partial<suffix>; one a killed writer
+    had left then was never removed, the new writers sweeping only names with a token. The aged one goes now; one
+    written just now stays, and so does another file's."""
+    import time
+
+    target = tmp_path / "grid.safetensors"
+    old, other = tmp_path / ".grid.partial.safetensors", tmp_path / ".grid.partial.png"
+    long_ago = time.time() - 3600
+    for partial in (old, other):
+        partial.write_bytes(b"half a grid")
+        os.utime(partial, (long_ago, long_ago))
+    with replacing(target) as partial:
+        partial.write_bytes(b"a whole grid")
+    assert sorted(p.name for p in tmp_path.iterdir()) == [other.name, target.name]
+    old.write_bytes(b"half a grid")  # (just written: maybe a live writer's)
+    with replacing(target) as partial:
+        partial.write_bytes(b"a whole grid")
+    assert old.exists()
+
+
 def test_png_rgba_and_bad_shape(tmp_path):
     rgba = torch.rand(5, 6, 4, generator=torch.Generator().manual_seed(0))
     save_png(tmp_path / "rgba.png", rgba)

@@ -94,13 +94,17 @@ def remove_dead_partials(target: Path) -> None:
     """Remove the partial files of ``target`` (:func:`partial_path`) that writers killed mid-write (SIGKILL, out of
     memory, power loss) left: each killed run had left one more for good. A partial file is a dead writer's when no
     process holds it locked (:func:`replacing` holds its own) and it was last written :data:`DEAD_PARTIAL_AGE_S`
-    ago. Best effort: a folder that cannot be listed, or a file that cannot be opened or removed, is left."""
+    ago. Best effort: a folder that cannot be listed, or a file that cannot be opened or removed, is left.
+    The one partial file of ``target`` of before each writer had its own, ``.<stem>.partial<suffix>``, goes by the
+    same rule: a writer killed then had left it, which no writer since would ever have removed."""
     token = "0" * 8
-    head = partial_path(target, token).name[:-len(f".{token}.partial{target.suffix}")]
-    pattern = re.compile(re.escape(head) + r"\.[0-9a-f]{8}" + re.escape(f".partial{target.suffix}"))
+    tail = f".partial{target.suffix}"
+    head = partial_path(target, token).name[:-len(f".{token}{tail}")]
+    pattern = re.compile(re.escape(head) + r"\.[0-9a-f]{8}" + re.escape(tail))
+    shared_name = head_that_fits(f".{target.stem}", tail, target.name) + tail
     names = []
     with suppress(OSError), os.scandir(target.parent) as entries:
-        names = [entry.name for entry in entries if pattern.fullmatch(entry.name)]
+        names = [entry.name for entry in entries if pattern.fullmatch(entry.name) or entry.name == shared_name]
     for name in names:
         with suppress(OSError):
             fd = os.open(target.parent / name, os.O_RDONLY | os.O_NOFOLLOW | os.O_NONBLOCK)  # (a FIFO: not waited on)
