@@ -116,3 +116,25 @@ def test_a_box_whose_corners_are_not_three_numbers_is_refused_naming_it(bbox_min
                                                                     image_downsample=(1,), bbox_min=bbox_min,
                                                                     bbox_max=bbox_max))
     assert VoxelGrid(4, [-1, -1, -1], torch.ones(3)).bbox_max.tolist() == [1.0, 1.0, 1.0]
+
+
+@pytest.mark.parametrize("thickness", [1e-12, 1e-6, 1e-4])
+def test_a_box_too_thin_for_its_resolution_is_refused_naming_it(thickness):
+    """The sampler steps by the smallest voxel edge: a box 2e-6 thin along z of 16 cells took ~80 s to render a ray
+    along it, 2e-12 thin rendered blank (white where the grid was dense); a fit of such a ReconstructConfig box
+    started so."""
+    from voxe_core.cameras import Cameras, look_at
+    from voxe_core.reconstruct import ReconstructConfig, reconstruct
+
+    box = (-1.0, -1.0, -thickness), (1.0, 1.0, thickness)
+    message = r"^the box min \[-1\.0, -1\.0, .*\] is too thin along z for resolution \(16, 16, 16\): .*at most 10000"
+    with pytest.raises(ValueError, match=message):
+        VoxelGrid(16, *box)
+    cams = Cameras.from_fov(look_at(torch.tensor([[0.0, -4.0, 1.0]])), 0.7, 4, 4)
+    with pytest.raises(ValueError, match=message):
+        reconstruct(torch.ones(1, 4, 4, 3), cams, ReconstructConfig(resolutions=(16,), iterations=(1,),
+                                                                    image_downsample=(1,), bbox_min=box[0],
+                                                                    bbox_max=box[1]))
+    grid = VoxelGrid(16, (-1.0, -1.0, -1e-2), (1.0, 1.0, 1e-2), init_density=10.0)  # 2e-2 thin: 2.1e3 edges
+    out = render_rays(grid, torch.tensor([[-3.0, 0.05, 0.0]]), torch.tensor([[1.0, 0.0, 0.0]]))
+    assert float(out.opacity[0]) > 0.99  # along the slab, through its density

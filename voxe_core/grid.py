@@ -39,6 +39,10 @@ DEFAULT_BOX = ((-1.5, -1.5, -1.5), (1.5, 1.5, 1.5))
 DEFAULT_SIGMA_THRESHOLD = 1e-3  # density skipped as empty, measured in the default box (``VoxelGrid.occupancy``)
 Activation = Literal["relu", "softplus"]
 SEGMENT = 16  # lattice samples per skipping segment (see _ray_segments)
+MAX_DIAGONAL_VOXELS = 10_000
+"""The most smallest voxel edges a box's diagonal may span (a 160³ cube's spans 276, a 512³ one's 886). The sampler
+steps by the smallest edge: a box 2e-6 thin along one axis of 16 cells took ~80 s a ray along it, 1e-12 thin rendered
+blank."""
 
 _CORNERS = torch.tensor(
     [[0, 0, 0], [0, 0, 1], [0, 1, 0], [0, 1, 1], [1, 0, 0], [1, 0, 1], [1, 1, 0], [1, 1, 1]]
@@ -311,6 +315,14 @@ class VoxelGrid(torch.nn.Module):
         # cost a round trip each.
         self.min_voxel_edge = float(self._lattice(torch.device("cpu")).voxel_size.min())
         self.box_diagonal = math.dist(host_min.tolist(), host_max.tolist())
+        if not self.box_diagonal <= MAX_DIAGONAL_VOXELS * self.min_voxel_edge:
+            axis = "xyz"[int(self._lattice(torch.device("cpu")).voxel_size.argmin())]
+            raise ValueError(
+                f"the box min {host_min.tolist()} max {host_max.tolist()} is too thin along {axis} for resolution "
+                f"{res}: its diagonal spans {self.box_diagonal / self.min_voxel_edge:.3g} of its smallest voxel edge "
+                f"({self.min_voxel_edge:.3g}, the step rays are sampled by), at most {MAX_DIAGONAL_VOXELS} "
+                "(MAX_DIAGONAL_VOXELS); "
+                f"widen the box along {axis} or give it fewer cells along {axis}")
         # Stored flat so a gather can return sparse gradients (see ``interpolate``).
         self.flat_features = torch.nn.Parameter(features.float().reshape(-1, 4).contiguous())
 
