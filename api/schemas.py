@@ -140,10 +140,14 @@ class RefineParams(Strict):
                             description="voxels tied to the 'edit' terminal: every voxel with P_edit >= 0.992 max "
                                         "P_edit, topped up to this many by the highest P_edit, then only those more "
                                         "likely edit than object (the authors' code)")
-    object_seeds: int = Field(paper.SERVICE_OBJECT_SEEDS, ge=0, le=10_000_000,
+    # At least 1: the service's cut has no unary term, so with no object seed nothing pulls a voxel to the object and
+    # every voxel joined to an edit seed stayed edited (0 had run the whole refinement to an edit not localised).
+    object_seeds: int = Field(paper.SERVICE_OBJECT_SEEDS, ge=1, le=10_000_000,
                               description="up to this many voxels tied to the 'object' terminal, drawn at random (the "
                                           f"job's seed) among P_object > P_edit + {paper.SERVICE_OBJECT_SEED_MARGIN} "
-                                          "(the authors' code: among P_object > P_edit)")
+                                          "(the authors' code: among P_object > P_edit); at least 1, as the cut has "
+                                          "no unary term: without object seeds it keeps every voxel joined to an edit "
+                                          "seed")
     sigma: float = Field(paper.CUT_SIGMA, gt=0, le=1e6, description="colour scale of the pairwise weights")
     smoothness: float = Field(paper.CUT_SMOOTHNESS, ge=0, le=1e6, description="graph-cut smoothness weight λ")
 

@@ -1136,13 +1136,22 @@ def test_json_options_json_loads_refuses_are_usage_errors_saying_why(text, messa
     (["edit", "g", "--prompt", "p", "--out", "o"], flag) for flag in ("--iterations", "--checkpoint-every",
                                                                       "--preview-every")] + [
     (["refine", "e", "--initial", "g", "--prompt", "p", "--edit-words", "p", "--out", "o"], flag)
-    for flag in ("--iterations", "--edit-seeds", "--object-seeds", "--preview-views")])
+    for flag in ("--iterations", "--edit-seeds", "--preview-views")])
 def test_a_negative_count_is_refused_naming_its_option(command, flag, capsys):
     """They had been refused after the grids were read, as "preview_every and checkpoint_every must be >= 0",
     "iterations and seed counts must be non-negative" or "--iterations and --preview-views ...": not which one."""
     with pytest.raises(SystemExit) as exc:
         main([*command, flag, "-1"])
     assert exc.value.code == 2 and f"argument {flag}: must be at least 0, got -1" in capsys.readouterr().err
+
+
+def test_refine_without_object_seeds_is_refused_naming_the_option(capsys):
+    """As a job's ``refine.object_seeds``: the cut has no unary term, so 0 object seeds had run the whole refinement
+    to keep every voxel joined to an edit seed (an edit not localised)."""
+    with pytest.raises(SystemExit) as exc:
+        main(["refine", "e", "--initial", "g", "--prompt", "p", "--edit-words", "p", "--out", "o", "--object-seeds",
+              "0"])
+    assert exc.value.code == 2 and "argument --object-seeds: must be at least 1, got 0" in capsys.readouterr().err
 
 
 def _count_options() -> list[tuple[str, str]]:

@@ -1925,3 +1925,21 @@ def test_the_refinements_attention_prompt_says_what_the_edits_prompt_said(view_w
     params = {"view_words": view_words}
     assert edit_config(params).view_words is view_words
     assert refine_config(params, ATTENTION_MODEL_ID).view_word_prompt is view_words
+
+
+def test_a_job_asking_no_object_seeds_is_refused_at_submission_naming_the_field():
+    """The service's cut has no unary term: with ``refine.object_seeds`` 0 nothing pulls a voxel to the object and
+    every voxel joined to an edit seed stays edited. It had been accepted (ge=0), the whole refinement run, and the
+    job had ended with an edit not localised and a warning."""
+    from pydantic import ValidationError
+
+    from api.schemas import JobCreate
+
+    with pytest.raises(ValidationError) as refused:
+        JobCreate(scene_id="s", prompt="a mic", params={"refine": {"object_seeds": 0}})
+    (error,) = refused.value.errors()
+    assert error["loc"] == ("params", "refine", "object_seeds") and error["msg"].endswith("greater than or equal to 1")
+    assert "without object seeds it keeps every voxel joined to an edit seed" in (
+        JobParams.model_json_schema()["$defs"]["RefineParams"]["properties"]["object_seeds"]["description"])
+    job = JobCreate(scene_id="s", prompt="a mic", params={"refine": {"object_seeds": 1}})
+    assert refine_config(job.params.model_dump(), "tiny").object_seeds == 1

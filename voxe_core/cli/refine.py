@@ -67,10 +67,12 @@ def add_parsers(commands, common) -> None:
                      help="voxels tied to the 'edit' terminal: every voxel with P_edit >= 0.992 max P_edit, topped "
                           "up to this many by the highest P_edit, then only those more likely edit than object "
                           "(the authors' code)")
-    ref.add_argument("--object-seeds", type=non_negative_int, default=paper.SERVICE_OBJECT_SEEDS,
+    ref.add_argument("--object-seeds", type=positive_int, default=paper.SERVICE_OBJECT_SEEDS,
                      help="up to this many voxels tied to the 'object' terminal, drawn at random (--seed) among "
                           f"P_object > P_edit + {paper.SERVICE_OBJECT_SEED_MARGIN} (the authors' code: among "
-                          f"P_object > P_edit; the paper's text: the top {paper.OBJECT_SEEDS} by P_object)")
+                          f"P_object > P_edit; the paper's text: the top {paper.OBJECT_SEEDS} by P_object); at least "
+                          "1, as the cut has no unary term: without object seeds it keeps every voxel joined to an "
+                          "edit seed")
     ref.add_argument("--sigma", type=finite_float, default=paper.CUT_SIGMA, help="colour scale of the graph cut's pairwise weights")
     ref.add_argument("--smoothness", type=finite_float, default=paper.CUT_SMOOTHNESS, help="graph-cut smoothness weight λ")
     ref.add_argument("--no-view-words", action="store_true",
