@@ -290,6 +290,38 @@ def test_scene_frame_centres_levels_and_scales_a_tilted_capture():
     assert torch.allclose(moved.c2w, Cameras.from_fov(ring_poses(12, 25.0, radius=4.0), 0.7, 16, 16).c2w, atol=1e-4)
 
 
+def test_scene_frame_takes_up_from_the_views_where_the_images_are_rolled_every_way():
+    """40 cameras 5-30° off the vertical above the object, each rolled about its axis at random: their image up axes
+    cancel out, and their mean (0.20 long, nearly horizontal) had been taken as up, no word said (world +z went to
+    (0.20, 0.98, 0) of the scene: the scene on its side). Up is now opposite the mean view direction, with a warning;
+    upright rings keep theirs, the one from below too."""
+    import math
+    import warnings
+
+    from voxe_core.cameras import spherical_poses
+
+    def canonical_up(c2w):
+        linear = scene_frame(Cameras.from_fov(c2w, 0.7, 8, 8))[:3, :3]
+        return linear.T[:, 2] / linear.norm(dim=0).mean()  # the world direction the frame takes to +z
+
+    generator = torch.Generator().manual_seed(1)
+    c2w = spherical_poses(60 + 25 * torch.rand(40, generator=generator), 360 * torch.rand(40, generator=generator), 4.0)
+    for pose, angle in zip(c2w, (2 * math.pi * torch.rand(40, generator=generator)).tolist()):
+        roll = torch.tensor([[math.cos(angle), -math.sin(angle), 0.0], [math.sin(angle), math.cos(angle), 0.0],
+                             [0.0, 0.0, 1.0]])
+        pose[:3, :3] = pose[:3, :3] @ roll
+    with pytest.warns(UserWarning, match=r"image up axes cancel out \(their mean is 0\.\d\d long.*: up is taken "
+                                         "opposite their mean view direction"):
+        up = canonical_up(c2w)
+    assert torch.allclose(up, torch.tensor([0.0, 0.0, 1.0]), atol=0.02), up
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert torch.allclose(canonical_up(ring_poses(12, 25.0)), torch.tensor([0.0, 0.0, 1.0]), atol=1e-5)
+    for elevation in (80.0, -80.0):  # upright: their image up axes' mean is short, but along +z
+        with pytest.warns(UserWarning, match="image up axes cancel out"):
+            assert torch.allclose(canonical_up(ring_poses(12, elevation)), torch.tensor([0.0, 0.0, 1.0]), atol=1e-5)
+
+
 def test_scene_frame_refuses_parallel_axes_and_cameras_on_the_centre():
     forward_facing = torch.eye(4).repeat(5, 1, 1)
     forward_facing[:, 0, 3] = torch.arange(5.0)

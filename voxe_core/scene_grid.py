@@ -36,7 +36,9 @@ methods ``SceneGrid`` overrides (``ray_samples``, ``dataset_cameras``,
 
 from __future__ import annotations
 
+import math
 import numbers
+import warnings
 from dataclasses import replace
 from typing import Iterator
 
@@ -59,6 +61,10 @@ took any count) samples fewer rays a pass."""
 MAX_NEAR_FAR_SAMPLES = _NEAR_FAR_BINS_PER_PASS // 2
 """The most ``near_samples`` or ``far_samples`` a scene grid takes: both at most fill a pass with one ray. 1e12 near
 bins had loaded from a file and failed its render, allocating 4 TB."""
+UP_AGREEMENT = 1.5
+"""The length the mean of N cameras' unit image up axes must reach, times sqrt(N) (at most 0.5: an upright ring up to
+60° above the horizon's), for ``scene_frame`` to take it as up: the mean of N axes rolled every way (a top-down capture
+turned about its axes) is about 1 / sqrt(N) long, a direction of chance."""
 EARLY_STOP_CAP = 1e-6
 """The scene sampler stops rays at transmittance min(``early_stop``, this). Behind the cut lies the
 room, not the white background the compositor puts there, so the density gradient of the last kept
@@ -349,7 +355,8 @@ def scene_frame(cameras: Cameras, radius: float = NERF_SYNTHETIC_RADIUS) -> torc
     the cameras look at. Up: the cameras' mean image up axis as the images are
     displayed (phones are held upright; ``Cameras.display_up``: +y unless an EXIF
     orientation turns the image: a portrait photo stored landscape had put up
-    sideways, and edits' views rolled 90°) turned onto +z. Scale: the mean camera
+    sideways, and edits' views rolled 90°) turned onto +z; where those cancel out (``UP_AGREEMENT``: images rolled every
+    way), opposite the cameras' mean view direction, with a warning. Scale: the mean camera
     distance becomes ``radius``.
     Raises ``ValueError`` for a single camera, when the axes are (nearly) parallel (a forward-facing
     capture has no centre to orbit), the centre lies behind most cameras (poses
@@ -383,6 +390,19 @@ def scene_frame(cameras: Cameras, radius: float = NERF_SYNTHETIC_RADIUS) -> torc
         )
     image_up = c2w.new_tensor([0.0, 1.0, 0.0]) if cameras.display_up is None else cameras.display_up.double()
     up = torch.einsum("nij,nj->i", c2w[:, :3, :3], image_up.expand(len(cameras), 3)) / len(cameras)
+    if float(up.norm()) < min(0.5, UP_AGREEMENT / math.sqrt(len(cameras))):
+        # (40 cameras 5-30° off the vertical, each rolled at random, had set the scene on its side, no word said)
+        look_down = -forward.mean(0)  # cameras above what they look at: up is opposite their mean view
+        clearly_opposite = float(up @ look_down) < -0.5 * float(up.norm() * look_down.norm())  # upright, from below
+        if float(look_down.norm()) > float(up.norm()) and not clearly_opposite:
+            warnings.warn(f"the cameras' image up axes cancel out (their mean is {float(up.norm()):.2f} long: images "
+                          "rolled every way, or a capture from straight above): up is taken opposite their mean view "
+                          "direction", stacklevel=2)
+            up = look_down
+        else:
+            warnings.warn(f"the cameras' image up axes cancel out (their mean is {float(up.norm()):.2f} long: images "
+                          "rolled every way), and their views give no better one: up is taken as that mean, which may "
+                          "be a direction of chance (edits' views rolled or tilted)", stacklevel=2)
     up = up / up.norm().clamp_min(1e-12)
     rotation = _rotation_onto_z(up)
     scale = radius / distance
