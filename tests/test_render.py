@@ -438,6 +438,33 @@ def test_rays_from_far_away_render_the_box_they_pass_through(distance, dtype):
     assert torch.allclose(render_rays(grid, closer, directions.float()).rgb, out.rgb, rtol=0, atol=1e-5)
 
 
+
+def test_rays_of_a_camera_at_the_papers_radius_are_not_moved_though_they_enter_past_the_diagonal():
+    """Regression: a camera at radius 4.03 on the box's diagonal enters the far corners of a 3-unit box up to 5.5
+    units away, past its 5.2-unit diagonal, and those rays had been moved to the box, their renders changed by
+    rounding (up to 6e-6 in colour, 9e-6 in opacity). Only origins farther than the diagonal from the box move: these
+    render bit for bit as the rays as given."""
+    grid = VoxelGrid(16)
+    g = torch.Generator().manual_seed(0)
+    with torch.no_grad():
+        grid.flat_features.copy_(torch.randn(grid.flat_features.shape, generator=g))
+    targets = torch.rand(20000, 3, generator=g) * 3.0 - 1.5
+    corner = torch.tensor([1.5, -1.5, -1.5])  # near the far corner of a face the camera sees
+    targets[:2000] = corner + torch.rand(2000, 3, generator=g) * torch.tensor([-0.2, 0.5, 0.5])
+    origins = torch.full_like(targets, 4.0311 / math.sqrt(3.0))
+    directions = F.normalize(targets - origins, dim=-1)
+    near, far = ray_box_intersection(origins.double(), directions.double(), grid.bbox_min.double(),
+                                     grid.bbox_max.double())
+    assert ((near > grid.box_diagonal) & (far > near)).any()  # rays through the box entering past its diagonal
+    config = RenderConfig(skip_empty=False, fused=False)
+    out = render_rays(grid, origins, directions, config)
+    offsets = torch.full((len(origins),), 0.5)
+    samples = grid.ray_samples(origins, directions, offsets, config.step_ratio, None, config.pass_samples("cpu"),
+                               config.early_stop)
+    want = composite(samples, grid_field(grid), len(origins), torch.tensor(config.background).expand(3))
+    for name in ("rgb", "opacity", "depth"):
+        assert torch.equal(getattr(out, name), getattr(want, name)), name
+
 class Ops(TorchDispatchMode):
     """The aten operations dispatched inside it, by name (what a launch-bound device pays for, one by one)."""
 

@@ -214,8 +214,11 @@ def render_rays(
 def _moved_to_the_box(grid: VoxelGrid, origins: torch.Tensor,
                       directions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """(origins, shift (N,)): the rays of a lattice-sampled grid (the ReLU field) that start farther than its box's
-    diagonal from their entry, moved along themselves to it in float64 by ``shift`` (0 for the others, kept bit for
-    bit), before the renderer's float32 (so float64 rays keep their precision).
+    diagonal from the box, moved along themselves to their entry in float64 by ``shift`` (0 for the others, kept bit
+    for bit), before the renderer's float32 (so float64 rays keep their precision).
+
+    The origin's distance from the box decides, not the entry's: a camera at radius 4.03 enters a 3-unit box's far
+    corners up to 5.5 units away, past its diagonal, and those rays had been moved, their renders changed by rounding.
 
     Such a grid samples only inside its box, so the move changes its samples by rounding alone, but in float32 a far
     origin's rounding had become theirs: at 1e7 units (float32's spacing 1) the slab test's path through a 3-unit box
@@ -224,8 +227,9 @@ def _moved_to_the_box(grid: VoxelGrid, origins: torch.Tensor,
     if not grid.lattice_sampled:  # a scene grid samples from the camera on (its near bins): left as they are
         return origins, zero
     wide = origins.double(), unit_directions(directions.double())  # (float64 rays: as precise as they came)
-    near, _ = ray_box_intersection(*wide, grid.bbox_min.double(), grid.bbox_max.double())
-    moved = near > grid.box_diagonal
+    box = grid.bbox_min.double(), grid.bbox_max.double()
+    near, _ = ray_box_intersection(*wide, *box)
+    moved = (wide[0] - wide[0].clamp(*box)).norm(dim=-1) > grid.box_diagonal
     shift = torch.where(moved, near, 0.0)
     return torch.where(moved[:, None], (wide[0] + shift[:, None] * wide[1]).to(origins.dtype), origins), shift.float()
 
