@@ -231,7 +231,8 @@ def _moved_to_the_box(grid: VoxelGrid, origins: torch.Tensor,
     near, _ = ray_box_intersection(*wide, *box)
     moved = (wide[0] - wide[0].clamp(*box)).norm(dim=-1) > grid.box_diagonal
     shift = torch.where(moved, near, 0.0)
-    return torch.where(moved[:, None], (wide[0] + shift[:, None] * wide[1]).to(origins.dtype), origins), shift.float()
+    at_least_float32 = torch.promote_types(origins.dtype, torch.float32)  # (half rays had lost 1e-3 at the box)
+    return torch.where(moved[:, None], (wide[0] + shift[:, None] * wide[1]).to(at_least_float32), origins), shift.float()
 
 
 def composite(groups: Iterable[RaySamples], values: Field, n_rays: int, background: torch.Tensor) -> RenderOutput:
