@@ -413,6 +413,13 @@ def test_a_sql_broker_that_cannot_be_read_stops_no_other_reaper_work(db, monkeyp
     assert reaper.reap_orphaned_jobs(db) == [] and job_row(lost).state == "queued"
 
 
+def _assert_one_traceback_then_lines(records: list, first: str, fourth: str, back: str) -> None:
+    """Four failures in a row and the recovery, logged as a FailingStreak logs them: the first with its traceback
+    (``first``), the next ones a line each (the fourth's ``fourth``), then ``back``."""
+    assert [r.exc_info is not None for r in records] == [True, False, False, False, False], records
+    assert [records[0].getMessage(), records[3].getMessage(), records[4].getMessage()] == [first, fourth, back]
+
+
 def test_a_reaper_whose_passes_fail_logs_one_traceback_then_a_line_each_and_says_when_they_succeed_again(
         monkeypatch, caplog):
     """With the database down, every reaper pass (a minute apart) had logged 'reaper pass failed' with its whole
@@ -446,11 +453,11 @@ def test_a_reaper_whose_passes_fail_logs_one_traceback_then_a_line_each_and_says
         finally:
             running.stop()
     records = [r for r in caplog.records if r.name == "voxe.reaper"]
-    assert [r.exc_info is not None for r in records] == [True, False, False, False, False], records
-    assert records[0].getMessage() == "reaper: pass failed; next in 0.05 s"
-    assert records[3].getMessage() == ("reaper: pass 4 in a row failed; next in 0.05 s: OperationalError: "
-                                       "(builtins.Exception) connection refused")
-    assert records[4].getMessage() == "reaper: passes succeed again, after 4 failed in a row"
+    _assert_one_traceback_then_lines(
+        records, "reaper: pass failed; next in 0.05 s",
+        "reaper: pass 4 in a row failed; next in 0.05 s: OperationalError: "
+        "(builtins.Exception) connection refused",
+        "reaper: passes succeed again, after 4 failed in a row")
 
 
 def test_reading_the_database_clock_while_postgresql_is_down_logs_one_traceback_then_a_line_each(monkeypatch,
@@ -486,11 +493,11 @@ def test_reading_the_database_clock_while_postgresql_is_down_logs_one_traceback_
         database.up = True
         assert sync_clock(database) is not None
     records = [r for r in caplog.records if r.name == "voxe.db" and "clock is" not in r.getMessage()]
-    assert [r.exc_info is not None for r in records] == [True, False, False, False, False], records
-    assert records[0].getMessage() == "database clock: reading failed; the last offset measured stays"
-    assert records[3].getMessage() == ("database clock: reading 4 in a row failed; the last offset measured stays: "
-                                       "OperationalError: (builtins.Exception) connection refused")
-    assert records[4].getMessage() == "database clock: readings succeed again, after 4 failed in a row"
+    _assert_one_traceback_then_lines(
+        records, "database clock: reading failed; the last offset measured stays",
+        "database clock: reading 4 in a row failed; the last offset measured stays: "
+        "OperationalError: (builtins.Exception) connection refused",
+        "database clock: readings succeed again, after 4 failed in a row")
 
 
 def test_a_process_forked_while_the_database_clock_readings_fail_counts_its_own_from_zero(monkeypatch):
@@ -531,6 +538,32 @@ def test_a_process_forked_while_the_database_clock_readings_fail_counts_its_own_
     assert db._CLOCK_READINGS.failed == 3  # this process's own count goes on
 
 
+def _beat_until(event, monkeypatch, caplog, session_scope, check_models, models: dict) -> None:
+    """Run the worker's heartbeat loop (a beat each 10 ms, the clock not read, nothing swept; its database
+    ``session_scope``, its ``check_models`` and the ``models`` it starts with) until ``event`` is set, logging at INFO
+    into ``caplog``."""
+    import threading
+    import types
+
+    from worker import runtime, tasks
+
+    monkeypatch.setattr(tasks, "get_settings", lambda: types.SimpleNamespace(worker_heartbeat_s=0.01))
+    monkeypatch.setattr(tasks, "sync_clock", lambda: None)
+    monkeypatch.setattr(tasks, "check_models", check_models)
+    monkeypatch.setattr(runtime, "session_scope", session_scope)
+    for sweep in ("sweep_scratch", "sweep_scene_datasets", "sweep_ingest_scratch"):
+        monkeypatch.setattr(runtime, sweep, lambda settings: [])
+    monkeypatch.setattr(tasks, "_heartbeat_stop", threading.Event())
+    with caplog.at_level(logging.INFO, logger=tasks.log.name):
+        beating = threading.Thread(target=tasks._beat, args=("w@host", "q", "cpu", models), daemon=True)
+        beating.start()
+        try:
+            assert event.wait(10)
+        finally:
+            tasks._heartbeat_stop.set()
+            beating.join(10)
+
+
 def test_a_workers_heartbeats_failing_log_one_traceback_then_a_line_each_and_say_when_they_succeed_again(
         monkeypatch, caplog):
     """With the database down, every heartbeat (5 s apart) had logged "worker heartbeat failed" with its whole
@@ -541,7 +574,7 @@ def test_a_workers_heartbeats_failing_log_one_traceback_then_a_line_each_and_say
 
     from sqlalchemy.exc import OperationalError
 
-    from worker import runtime, tasks
+    from worker import tasks
 
     beats, recovered = [], threading.Event()
 
@@ -553,27 +586,13 @@ def test_a_workers_heartbeats_failing_log_one_traceback_then_a_line_each_and_say
         recovered.set()
         yield types.SimpleNamespace(get=lambda model, hostname: types.SimpleNamespace())
 
-    monkeypatch.setattr(tasks, "get_settings", lambda: types.SimpleNamespace(worker_heartbeat_s=0.01))
-    monkeypatch.setattr(tasks, "sync_clock", lambda: None)
-    monkeypatch.setattr(tasks, "check_models", lambda settings: {})
-    monkeypatch.setattr(runtime, "session_scope", session_scope)
-    for sweep in ("sweep_scratch", "sweep_scene_datasets", "sweep_ingest_scratch"):
-        monkeypatch.setattr(runtime, sweep, lambda settings: [])
-    monkeypatch.setattr(tasks, "_heartbeat_stop", threading.Event())
-    with caplog.at_level(logging.INFO, logger=tasks.log.name):
-        beating = threading.Thread(target=tasks._beat, args=("w@host", "q", "cpu", {}), daemon=True)
-        beating.start()
-        try:
-            assert recovered.wait(10)
-        finally:
-            tasks._heartbeat_stop.set()
-            beating.join(10)
+    _beat_until(recovered, monkeypatch, caplog, session_scope, lambda settings: {}, {})
     records = [r for r in caplog.records if r.name == tasks.log.name and "heartbeat" in r.getMessage()]
-    assert [r.exc_info is not None for r in records] == [True, False, False, False, False], records
-    assert records[0].getMessage() == "worker w@host: heartbeat failed"
-    assert records[3].getMessage() == ("worker w@host: heartbeat 4 in a row failed: OperationalError: "
-                                       "(builtins.Exception) connection refused")
-    assert records[4].getMessage() == "worker w@host: heartbeats succeed again, after 4 failed in a row"
+    _assert_one_traceback_then_lines(
+        records, "worker w@host: heartbeat failed",
+        "worker w@host: heartbeat 4 in a row failed: OperationalError: "
+        "(builtins.Exception) connection refused",
+        "worker w@host: heartbeats succeed again, after 4 failed in a row")
 
 
 def test_a_workers_model_checks_failing_log_one_traceback_then_a_line_each_and_the_last_answer_stands(monkeypatch,
@@ -584,7 +603,7 @@ def test_a_workers_model_checks_failing_log_one_traceback_then_a_line_each_and_t
     import threading
     import types
 
-    from worker import runtime, tasks
+    from worker import tasks
 
     checks, recorded, recovered = [], [], threading.Event()
     answer = {"sds": {"model": "tiny", "present": True}}
@@ -602,27 +621,13 @@ def test_a_workers_model_checks_failing_log_one_traceback_then_a_line_each_and_t
         yield types.SimpleNamespace(get=lambda model, hostname: row)
         recorded.append(row.models)
 
-    monkeypatch.setattr(tasks, "get_settings", lambda: types.SimpleNamespace(worker_heartbeat_s=0.01))
-    monkeypatch.setattr(tasks, "sync_clock", lambda: None)
-    monkeypatch.setattr(tasks, "check_models", check_models)
-    monkeypatch.setattr(runtime, "session_scope", session_scope)
-    for sweep in ("sweep_scratch", "sweep_scene_datasets", "sweep_ingest_scratch"):
-        monkeypatch.setattr(runtime, sweep, lambda settings: [])
-    monkeypatch.setattr(tasks, "_heartbeat_stop", threading.Event())
-    with caplog.at_level(logging.INFO, logger=tasks.log.name):
-        beating = threading.Thread(target=tasks._beat, args=("w@host", "q", "cpu", answer), daemon=True)
-        beating.start()
-        try:
-            assert recovered.wait(10)
-        finally:
-            tasks._heartbeat_stop.set()
-            beating.join(10)
+    _beat_until(recovered, monkeypatch, caplog, session_scope, check_models, answer)
     records = [r for r in caplog.records if r.name == tasks.log.name and "models" in r.getMessage()]
-    assert [r.exc_info is not None for r in records] == [True, False, False, False, False], records
-    assert records[0].getMessage() == "worker w@host: check of its models failed; the last answer stands"
-    assert records[3].getMessage() == ("worker w@host: check of its models 4 in a row failed; the last answer stands: "
-                                       "OSError: [Errno 116] Stale file handle")
-    assert records[4].getMessage() == "worker w@host: checks of its models succeed again, after 4 failed in a row"
+    _assert_one_traceback_then_lines(
+        records, "worker w@host: check of its models failed; the last answer stands",
+        "worker w@host: check of its models 4 in a row failed; the last answer stands: "
+        "OSError: [Errno 116] Stale file handle",
+        "worker w@host: checks of its models succeed again, after 4 failed in a row")
     assert recorded[:4] == [answer] * 4
 
 
@@ -1924,10 +1929,9 @@ def test_a_fit_whose_grid_cannot_be_stored_is_handed_back_at_once(db, monkeypatc
     assert get_storage(db).list(f"reconstructions/{rec_id}/") == []
 
 
-def test_a_fit_whose_grid_record_meets_a_database_outage_leaves_no_orphan_grid_once_fitted_again(db, monkeypatch):
-    """The database down exactly as a finished fit recorded its stored grid: the job went back to the queue and its
-    redelivery fitted again, storing its grid under its own run's name, while the first run's grid stayed in the
-    storage for good, recorded nowhere. Once the fit's grid is recorded, the others go."""
+def _fit_stopped_as_its_grid_is_recorded(db, monkeypatch) -> tuple[str, str]:
+    """(job id, reconstruction id) of a voxelize-route fit whose run stored its grid, then met the database down as it
+    recorded it: the job went back to the queue, the run's grid left in the storage, recorded nowhere."""
     import sqlite3
 
     from sqlalchemy.exc import OperationalError
@@ -1954,12 +1958,21 @@ def test_a_fit_whose_grid_record_meets_a_database_outage_leaves_no_orphan_grid_o
         result = tasks.reconstruct_task.apply(args=(job_id,))
     assert result.state == "REJECTED" and result.result.requeue, result.result
     assert len(get_storage(db).list(f"reconstructions/{rec_id}/grid-")) == 1  # the first run's, recorded nowhere
+    return job_id, rec_id
+
+
+def test_a_fit_whose_grid_record_meets_a_database_outage_leaves_no_orphan_grid_once_fitted_again(db, monkeypatch):
+    """The database down exactly as a finished fit recorded its stored grid: the job went back to the queue and its
+    redelivery fitted again, storing its grid under its own run's name, while the first run's grid stayed in the
+    storage for good, recorded nowhere. Once the fit's grid is recorded, the others go."""
+    from voxe_service.storage import get_storage
+    from worker import runtime, tasks
+
+    job_id, rec_id = _fit_stopped_as_its_grid_is_recorded(db, monkeypatch)
     assert tasks.reconstruct_task.apply(args=(job_id,)).get()["state"] == "done"  # the redelivery
     rec = runtime.load_reconstruction(rec_id)
     assert rec.state == "succeeded" and get_storage(db).list(f"reconstructions/{rec_id}/") == [rec.grid_key]
     assert runtime.recorded_key(job_id, "initial_grid.safetensors") == rec.grid_key
-
-
 
 
 def test_a_fit_handed_back_by_a_database_outage_that_then_fails_leaves_no_grid_in_the_storage(db, monkeypatch):
@@ -1967,33 +1980,11 @@ def test_a_fit_handed_back_by_a_database_outage_that_then_fails_leaves_no_grid_i
     under its own name and recorded nowhere, left for the fit's next success to delete. When the fit then failed (its
     redelivery's voxelizing raising), that grid stayed in the storage for good. A fit that ends failed deletes the
     grids stored for it; the failure is the job's and the fit's as before."""
-    import sqlite3
-
-    from sqlalchemy.exc import OperationalError
-
-    from conftest import make_sphere_grid
     from voxe_core.mesh_input import MeshError
     from voxe_service.storage import get_storage
     from worker import runtime, tasks
 
-    scene = add_scene()
-    rec_id = add_reconstruction(scene, params={"route": "voxelize"})
-    job_id = add_job(scene, "queued", 0, reconstruction_id=rec_id)
-    monkeypatch.setattr(tasks, "_check_job_can_start", lambda job, settings: None)
-    monkeypatch.setattr(tasks, "_voxelize", lambda *args: make_sphere_grid(8))
-    monkeypatch.setattr(runtime, "OUTAGE_PAUSE_S", 0.0)
-    with monkeypatch.context() as outage:
-        set_reconstruction = runtime.set_reconstruction
-
-        def down_as_the_grid_is_recorded(*args, **values):
-            if values.get("state") == "succeeded":
-                raise OperationalError("UPDATE reconstructions", {}, sqlite3.OperationalError("database is locked"))
-            return set_reconstruction(*args, **values)
-
-        outage.setattr(runtime, "set_reconstruction", down_as_the_grid_is_recorded)
-        result = tasks.reconstruct_task.apply(args=(job_id,))
-    assert result.state == "REJECTED" and result.result.requeue, result.result
-    assert len(get_storage(db).list(f"reconstructions/{rec_id}/grid-")) == 1  # the first run's, recorded nowhere
+    job_id, rec_id = _fit_stopped_as_its_grid_is_recorded(db, monkeypatch)
 
     def unreadable(*args):
         raise MeshError("mesh.obj: no faces")
@@ -2005,18 +1996,13 @@ def test_a_fit_handed_back_by_a_database_outage_that_then_fails_leaves_no_grid_i
     assert job_row(job_id).error == "reconstruct: MeshError: mesh.obj: no faces"
     assert get_storage(db).list(f"reconstructions/{rec_id}/") == []
 
-def test_a_shared_fit_whose_grid_was_deleted_from_the_storage_is_fitted_again_by_the_next_job(db, monkeypatch):
-    """The scene's fitted grid G_i deleted from the storage (by hand, a bucket's lifecycle rule): every later job
-    with its reconstruction parameters failed at once, "reconstruct: StorageError: reconstructions/<id>/grid-...: not
-    in the storage", for good, and no job could ever fit it again. The next job fits it again, saying so in a warning
-    on its timeline, and goes on with the new grid."""
-    from sqlalchemy import select
 
+def _shared_fit_fitted_by_the_first_of_two_jobs(db, monkeypatch) -> tuple:
+    """(storage, reconstruction id, first job, later job): a voxelize-route fit two queued jobs share, fitted by the
+    first's reconstruct stage (voxelizing a sphere; the jobs' start checks skipped)."""
     from conftest import make_sphere_grid
-    from voxe_service.db import session_scope
-    from voxe_service.models import JobEvent
     from voxe_service.storage import get_storage
-    from worker import runtime, tasks
+    from worker import tasks
 
     storage, scene = get_storage(db), add_scene()
     rec_id = add_reconstruction(scene, params={"route": "voxelize"})
@@ -2024,6 +2010,21 @@ def test_a_shared_fit_whose_grid_was_deleted_from_the_storage_is_fitted_again_by
     monkeypatch.setattr(tasks, "_check_job_can_start", lambda job, settings: None)
     monkeypatch.setattr(tasks, "_voxelize", lambda *args: make_sphere_grid(8))
     assert tasks.reconstruct_task.apply(args=(first,)).get()["state"] == "done"
+    return storage, rec_id, first, later
+
+
+def test_a_shared_fit_whose_grid_was_deleted_from_the_storage_is_fitted_again_by_the_next_job(db, monkeypatch):
+    """The scene's fitted grid G_i deleted from the storage (by hand, a bucket's lifecycle rule): every later job
+    with its reconstruction parameters failed at once, "reconstruct: StorageError: reconstructions/<id>/grid-...: not
+    in the storage", for good, and no job could ever fit it again. The next job fits it again, saying so in a warning
+    on its timeline, and goes on with the new grid."""
+    from sqlalchemy import select
+
+    from voxe_service.db import session_scope
+    from voxe_service.models import JobEvent
+    from worker import runtime, tasks
+
+    storage, rec_id, first, later = _shared_fit_fitted_by_the_first_of_two_jobs(db, monkeypatch)
     lost = runtime.load_reconstruction(rec_id).grid_key
     storage.delete(lost)
     assert tasks.reconstruct_task.apply(args=(later,)).get()["state"] == "done", job_row(later).error
@@ -2037,21 +2038,15 @@ def test_a_shared_fit_whose_grid_was_deleted_from_the_storage_is_fitted_again_by
     assert warnings == [f"the scene's reconstruction {rec_id} had its grid {lost} deleted from the storage: fitting "
                         "it again"]
 
+
 def test_a_refit_that_ran_out_of_memory_with_only_jobs_past_their_reconstruct_left_ends_failed(db, monkeypatch):
     """A shared fit refitted after its grid was deleted from the storage, the refit stopped by its worker running out
     of memory: the hand-back counted the job that had reused the old grid and gone on to its edit as waiting for the
     fit, so the fit was handed back pending, with no job left ever to take it over, and the refit's stray grids kept.
     A job past its reconstruct stage waits for no fit: it ends failed, nothing of its left in the storage."""
-    from conftest import make_sphere_grid
-    from voxe_service.storage import get_storage
     from worker import runtime, tasks
 
-    storage, scene = get_storage(db), add_scene()
-    rec_id = add_reconstruction(scene, params={"route": "voxelize"})
-    first, later = (add_job(scene, "queued", 0, reconstruction_id=rec_id) for _ in range(2))
-    monkeypatch.setattr(tasks, "_check_job_can_start", lambda job, settings: None)
-    monkeypatch.setattr(tasks, "_voxelize", lambda *args: make_sphere_grid(8))
-    assert tasks.reconstruct_task.apply(args=(first,)).get()["state"] == "done"
+    storage, rec_id, first, later = _shared_fit_fitted_by_the_first_of_two_jobs(db, monkeypatch)
     assert job_row(first).state == "running"  # (past its reconstruct, its edit to come)
     storage.delete(runtime.load_reconstruction(rec_id).grid_key)
 
@@ -2115,15 +2110,9 @@ def test_a_refit_of_a_lost_grid_reads_as_not_yet_fitted_until_it_ends(db, monkey
     total: through a refit that reports no progress until its end (a mesh's voxelizing), it read as done, and every
     job waiting on it showed its fit complete. It reads as a fit not begun until the refit reports."""
     from conftest import make_sphere_grid
-    from voxe_service.storage import get_storage
     from worker import runtime, tasks
 
-    storage, scene = get_storage(db), add_scene()
-    rec_id = add_reconstruction(scene, params={"route": "voxelize"})
-    first, later = (add_job(scene, "queued", 0, reconstruction_id=rec_id) for _ in range(2))
-    monkeypatch.setattr(tasks, "_check_job_can_start", lambda job, settings: None)
-    monkeypatch.setattr(tasks, "_voxelize", lambda *args: make_sphere_grid(8))
-    assert tasks.reconstruct_task.apply(args=(first,)).get()["state"] == "done"
+    storage, rec_id, first, later = _shared_fit_fitted_by_the_first_of_two_jobs(db, monkeypatch)
     assert (runtime.load_reconstruction(rec_id).iteration, runtime.load_reconstruction(rec_id).total) == (1, 1)
     storage.delete(runtime.load_reconstruction(rec_id).grid_key)
     seen = []
@@ -2183,7 +2172,6 @@ def test_a_fit_whose_grid_record_meets_a_database_outage_is_handed_back_to_the_j
         assert rec.error == f"job {job_id}'s fit: stopped by {said}"
         assert runtime.try_claim_reconstruction(rec_id, waiting, "alive@host", db, allow_failed=False)
         assert runtime.set_reconstruction(rec_id, waiting, state="pending", owner_job_id=None)  # (let the first refit)
-
 
 
 def test_a_fit_stopped_by_a_database_outage_is_handed_back_once_the_database_answers_again(db, monkeypatch):

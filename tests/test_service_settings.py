@@ -212,11 +212,23 @@ def test_a_device_as_long_as_a_jobs_column_is_accepted_and_one_longer_refused(fr
         get_settings()
 
 
+def _jobs_after_migrating(url: str) -> int:
+    """The jobs in the database at ``url`` once migrated: it opens where the settings say (a fresh one holds 0)."""
+    from voxe_service.db import make_engine, run_migrations
+
+    run_migrations(url)
+    engine = make_engine(url)
+    try:
+        with engine.connect() as connection:
+            return connection.exec_driver_sql("SELECT count(*) FROM jobs").scalar_one()
+    finally:
+        engine.dispose()
+
+
 def test_sqlite_files_under_the_home_folder_are_opened_there(fresh_settings, tmp_path):
     """SQLite opens '~/vx/voxe.db' as written, under a folder '~' of the working directory: the API had failed to
     start ("unable to open database file"), its folders and migration lock made under the home folder."""
     from voxe_service.broker import waiting_tasks
-    from voxe_service.db import make_engine, run_migrations
 
     home = tmp_path / "home"
     fresh_settings.setenv("HOME", str(home))
@@ -226,13 +238,7 @@ def test_sqlite_files_under_the_home_folder_are_opened_there(fresh_settings, tmp
     settings = get_settings()
     assert (settings.database_url, settings.broker_url) == (f"sqlite:///{home}/vx/voxe.db",
                                                             f"sqla+sqlite:///{home}/vx/broker.db?timeout=5")
-    run_migrations(settings.database_url)
-    engine = make_engine(settings.database_url)
-    try:
-        with engine.connect() as connection:
-            assert connection.exec_driver_sql("SELECT count(*) FROM jobs").scalar_one() == 0
-    finally:
-        engine.dispose()
+    assert _jobs_after_migrating(settings.database_url) == 0
     assert waiting_tasks(settings.broker_url) == set()
     assert {path.name for path in (home / "vx").iterdir()} >= {"voxe.db", "broker.db"}
     assert not (tmp_path / "~").exists()
@@ -242,7 +248,6 @@ def test_a_sqlite_uri_filename_under_the_home_folder_is_opened_there(fresh_setti
     """``sqlite:///file:~/vx/voxe.db?uri=true``: the folder and the migration lock were made under the home folder
     (settings.sqlite_file expands the '~'), but SQLite was handed the URI as written and opened './~/vx/voxe.db'
     ("unable to open database file"). The '~' is expanded in the URL too, as a plain file name's."""
-    from voxe_service.db import make_engine, run_migrations
     from voxe_service.settings import sqlite_file
 
     home = tmp_path / "home"
@@ -251,13 +256,7 @@ def test_a_sqlite_uri_filename_under_the_home_folder_is_opened_there(fresh_setti
     fresh_settings.setenv("VOXE_DATABASE_URL", "sqlite:///file:~/vx/voxe.db?uri=true")
     settings = get_settings()
     assert sqlite_file(settings.database_url) == home / "vx" / "voxe.db"
-    run_migrations(settings.database_url)
-    engine = make_engine(settings.database_url)
-    try:
-        with engine.connect() as connection:
-            assert connection.exec_driver_sql("SELECT count(*) FROM jobs").scalar_one() == 0
-    finally:
-        engine.dispose()
+    assert _jobs_after_migrating(settings.database_url) == 0
     assert {path.name for path in (home / "vx").iterdir()} >= {"voxe.db", "voxe.db.migrate.lock"}
     assert not (tmp_path / "~").exists()
 
