@@ -833,7 +833,7 @@ def test_racing_first_reads_of_a_keys_webhook_secret_all_get_the_stored_one(db):
         with get_sessionmaker()() as session:
             key = session.get(ApiKey, LOCAL_KEY_ID)
             assert key.webhook_secret is None
-            all_read.wait()
+            all_read.wait(60)  # (a racer that failed before it: the others go on, their error told, not hung)
             secret = key_secret(session, key)
             session.commit()
             return secret
