@@ -223,9 +223,8 @@ def _moved_to_the_box(grid: VoxelGrid, origins: torch.Tensor,
     Such a grid samples only inside its box, so the move changes its samples by rounding alone, but in float32 a far
     origin's rounding had become theirs: at 1e7 units (float32's spacing 1) the slab test's path through a 3-unit box
     was ~2 units off, the points as far, the opacity 0.3 off, and at 3e7 rays through the box missed it."""
-    zero = torch.zeros(origins.shape[0], device=origins.device)
     if not grid.lattice_sampled:  # a scene grid samples from the camera on (its near bins): left as they are
-        return origins, zero
+        return origins, torch.zeros(origins.shape[0], device=origins.device)
     wide = origins.double(), unit_directions(directions.double())  # (float64 rays: as precise as they came)
     box = grid.bbox_min.double(), grid.bbox_max.double()
     near, _ = ray_box_intersection(*wide, *box)
