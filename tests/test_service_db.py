@@ -235,6 +235,23 @@ def test_api_replicas_starting_at_once_migrate_a_fresh_database_one_after_anothe
     command.check(alembic_config(database_url))
 
 
+def test_a_fresh_sqlite_file_is_migrated_into_wal_mode(tmp_path):
+    """run_migrations leaves a new SQLite file in WAL mode, before any service connection opens it: the first
+    connections of the service (a request's threads, the API and a worker) had each turned it from rollback mode to
+    WAL at connect, and one of two doing so at once got "database is locked" with no busy wait (1 in ~150 trials
+    of eight threads; the CI failure of test_racing_first_reads_of_a_keys_webhook_secret_all_get_the_stored_one)."""
+    import sqlite3
+
+    from voxe_service.db import run_migrations
+
+    run_migrations(f"sqlite:///{tmp_path / 'voxe.db'}")
+    connection = sqlite3.connect(tmp_path / "voxe.db")  # (a plain connection: it asks for no mode itself)
+    try:
+        assert connection.execute("PRAGMA journal_mode").fetchone() == ("wal",)
+    finally:
+        connection.close()
+
+
 def test_a_sqlite_uri_filename_gets_its_folder_and_lock_where_sqlite_opens_it(tmp_path, monkeypatch):
     """``sqlite:///file:./var/x.db?uri=true`` (SQLite's URI filename): the folder made and the migration lock are
     those of ./var/x.db, the file SQLite opens; a folder named 'file:.' had been made (and the lock put there) and

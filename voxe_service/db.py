@@ -181,12 +181,23 @@ def run_migrations(database_url: str) -> None:
 
     Processes starting together (API replicas) upgrade one after another: PostgreSQL under an advisory lock
     (``migrations/env.py``), a SQLite file under a lock file beside it (SQLite runs DDL outside transactions).
+
+    A SQLite file is left in WAL mode (which it keeps): the migrations' connections do not ask for it, and the
+    service's connections (:func:`make_engine`) each ask at connect; on a file still in rollback mode their first
+    ones, opened together by one request's threads or by the API and a worker, each turned it to WAL, and one of
+    two both holding the file's shared lock was refused at once with "database is locked" (SQLite's deadlock rule:
+    no busy timeout is waited).
     """
     from alembic import command
 
     ensure_sqlite_dir(database_url)
     with _sqlite_file_lock(database_url):
         command.upgrade(alembic_config(database_url), "head")
+        if sqlite_file(database_url) is not None:
+            engine = make_engine(database_url, pool_size=1, max_overflow=0)
+            with engine.connect():  # (its connect turns the file to WAL)
+                pass
+            engine.dispose()
 
 
 @contextmanager
