@@ -422,6 +422,11 @@ class SceneOut(BaseModel):
         description="what reconstruction backbone auto means for this scene, decided by its processing from all its "
         "training images (relu_field: an object on a transparent background; scene: opaque photos); null while "
         "processing, and for scenes processed before it was recorded")
+    warnings: list[str] | None = Field(
+        description="what its processing loaded the upload without (a mesh's .mtl its OBJ names not sent, its PLY's "
+        "TextureFile unread: the mesh loads grey), each also a warning event (stage ingest) of every edit job on the "
+        "scene, whether created before or after it was ready; [] for none; null until it is ready, and for scenes "
+        "processed before it was recorded")
     size_bytes: int = Field(description="bytes stored (0 once failed: a failed upload is not kept)")
     sha256: str
     created_at: datetime

@@ -106,7 +106,7 @@ def test_openapi_documents_the_v1_surface(client):
 
 def test_upload_zip_and_files(client, dataset, root):
     scene = make_scene(client, dataset, root)
-    assert scene["state"] == "ready" and scene["error"] is None
+    assert scene["state"] == "ready" and scene["error"] is None and scene["warnings"] == []
     assert scene["format"] == "nerf_synthetic" and scene["image_count"] == 3
     assert (scene["width"], scene["height"]) == (800, 800) and scene["splits"] == ["train"]
     assert scene["name"] == "scene"  # the archive's name
@@ -148,7 +148,7 @@ def test_a_scene_is_processing_until_its_ingest_and_jobs_on_it_wait_without_a_me
 
     assert ingest(scene["id"]) == {"scene_id": scene["id"], "state": "ready"}
     ready = client.get(f"/v1/scenes/{scene['id']}").json()
-    assert ready == {**scene, "state": "ready", "backbone": "relu_field"}
+    assert ready == {**scene, "state": "ready", "backbone": "relu_field", "warnings": []}
     sent = client.get(f"/v1/jobs/{job['id']}").json()
     assert sent["state"] == "queued" and sent["message"] is None
     with session_scope() as session:
@@ -3339,3 +3339,42 @@ def test_a_mesh_loaded_without_the_mtl_its_obj_names_says_so_on_the_jobs_waiting
     warnings = [(e["stage"], e["detail"]) for e in events if e["kind"] == "warning"]
     assert warnings == [("ingest", "m.obj: the material library its mtllib names, 'model.mtl', is not found beside "
                                    "it; the mesh loads without its materials")]
+
+
+def test_a_job_created_on_a_mesh_scene_once_ready_is_told_its_ingests_warnings(client, root, monkeypatch):
+    """The ingest's warnings (an OBJ's .mtl not sent: the mesh loads grey) had been told to the jobs waiting for the
+    scene alone: one created once it was ready was never told, nor did the scene say it. The scene keeps them (its
+    ``warnings``) and a job created on it gets the same ``warning`` event; an evaluation is told none (the ingest's
+    are told to edits)."""
+    from sqlalchemy import update
+
+    from voxe_service import datasets
+    from voxe_service.db import session_scope
+    from voxe_service.models import Job
+
+    monkeypatch.setattr(datasets, "MESH_VIEWS", 2)
+    monkeypatch.setattr(datasets, "MESH_VIEW_SIZE", 32)
+    obj = ("mtllib model.mtl\nv 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nv 0 0 1\nusemtl red\nf 1 2 3\nf 1 3 4\nf 1 2 5\n")
+    response = client.post("/v1/scenes", files=[("files", ("cube/m.obj", obj.encode(), "text/plain"))])
+    assert response.status_code == 201, response.text
+    scene = response.json()
+    assert scene["warnings"] is None  # (processing)
+    waiting = client.post("/v1/jobs", json={"scene_id": scene["id"], **JOB}).json()
+    assert ingest(scene["id"]) == {"scene_id": scene["id"], "state": "ready"}
+    said = ("m.obj: the material library its mtllib names, 'model.mtl', is not found beside it; the mesh loads "
+            "without its materials")
+    assert client.get(f"/v1/scenes/{scene['id']}").json()["warnings"] == [said]
+    assert client.get("/v1/scenes").json()["items"][0]["warnings"] == [said]
+    later = client.post("/v1/jobs", json={"scene_id": scene["id"], **JOB})
+    assert later.status_code == 201, later.text
+
+    def warned(job_id):
+        events = client.get(f"/v1/jobs/{job_id}/events").json()
+        return [(e["stage"], e["detail"]) for e in events if e["kind"] == "warning"]
+
+    assert warned(waiting["id"]) == warned(later.json()["id"]) == [("ingest", said)]
+    with session_scope() as session:
+        session.execute(update(Job).where(Job.id == later.json()["id"]).values(state="succeeded"))
+    evaluation = client.post("/v1/evaluations", json={"job_ids": [later.json()["id"]], "object": "cube"})
+    assert evaluation.status_code == 201, evaluation.text
+    assert warned(evaluation.json()["id"]) == []

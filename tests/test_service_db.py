@@ -427,6 +427,37 @@ def test_keys_upgrade_to_never_expiring_and_back(database_url):
     engine.dispose()
 
 
+def test_scenes_upgrade_to_no_warnings_kept_and_back(database_url):
+    """0022 keeps a scene's ingest warnings (NULL: a scene ingested before it, whose were not kept); a list written is
+    read back through the model as written, and downgrading drops the column, the scenes kept."""
+    from alembic import command
+    from sqlalchemy import inspect, text
+    from sqlalchemy.orm import Session
+
+    from service_helpers import database_at
+    from voxe_service.models import Scene
+
+    config, engine = database_at(database_url, "0021_key_expiry", READY_SCENE_ROW)
+    command.upgrade(config, "head")
+    with engine.connect() as conn:
+        assert conn.execute(text("SELECT state, warnings FROM scenes")).one() == ("ready", None)
+    command.check(config)
+    said = ["m.obj: the material library its mtllib names, 'model.mtl', is not found beside it; the mesh loads "
+            "without its materials"]
+    with Session(engine) as session:
+        assert session.get(Scene, "s1").warnings is None
+        session.get(Scene, "s1").warnings = said
+        session.commit()
+    with Session(engine) as session:
+        assert session.get(Scene, "s1").warnings == said
+    command.downgrade(config, "0021_key_expiry")
+    with engine.connect() as conn:
+        assert conn.execute(text("SELECT name, state, storage_key FROM scenes")).one() == (
+            "old", "ready", "scenes/s1/dataset.zip")
+    assert "warnings" not in {c["name"] for c in inspect(engine).get_columns("scenes")}
+    engine.dispose()
+
+
 def test_jobs_of_0004_upgrade_to_webhooks_off_and_back(database_url):
     """0005 adds the webhook columns (NULL: no webhook) and the deliveries outbox; downgrading drops them."""
     from alembic import command

@@ -4268,6 +4268,7 @@ def test_a_superseded_mesh_ingest_leaves_the_winners_archive_as_recorded(db, tmp
         stall("render")
         (root / "transforms_train.json").write_text("{}")
         (root / "r_0.png").write_text(threading.current_thread().name)
+        return []  # (loaded without nothing)
 
     package, lease = datasets.package, ingest.ingest_lease
 
@@ -4344,6 +4345,7 @@ def _mesh_scene_rendering(storage, monkeypatch, render=None) -> str:
     def views(root):
         (root / "transforms_train.json").write_text("{}")
         (root / "r_0.png").write_text("x" * 1000)
+        return []  # (loaded without nothing)
     monkeypatch.setattr(ingest, "render_mesh", render or views)
     monkeypatch.setattr(ingest, "decode", lambda root, downsample: ingest.Decoded(1, "relu_field"))
     return scene
@@ -4405,6 +4407,7 @@ def test_a_mesh_scene_deleted_while_it_renders_is_said_to_be_deleted(db, monkeyp
         storage.delete_prefix(scene_key(scene))  # (as the API's delete does)
         time.sleep(0.4)  # a renewal finds the row gone
         (root / "r_0.png").write_text("x")
+        return []
 
     scene = _mesh_scene_rendering(storage, monkeypatch, deleted_meanwhile)
     assert ingest.ingest_scene(scene, settings, storage, "w1@host") == {

@@ -129,6 +129,10 @@ class Scene(Base):
     # What reconstruction backbone "auto" means for this scene ("relu_field" | "scene"), decided by its ingest from
     # all its training images; None while processing (and for scenes ingested before it was recorded).
     backbone: Mapped[str | None] = mapped_column(String(16), nullable=True)
+    # What its ingest loaded the upload without (a mesh's MeshWarnings, files named as uploaded; [] for none), each a
+    # ``warning`` event of stage "ingest" on every edit job of the scene: the ingest's on those waiting for it, the
+    # API's on those created once it is ready. None until it is ready (and for scenes ingested before it was recorded).
+    warnings: Mapped[list | None] = mapped_column(JSON, nullable=True)
     state: Mapped[str] = mapped_column(String(16), default=PROCESSING, index=True)
     # Why a failed scene failed; while processing, what stopped the ingest's last run, given back (worker.ingest)
     error: Mapped[str | None] = mapped_column(Text, nullable=True)

@@ -316,11 +316,13 @@ def _fail(scene_id: str, token: str, reason: str, storage: Storage) -> bool:
 def _ready(scene_id: str, token: str, values: dict, storage: Storage, settings: Settings,
            replaced_key: str | None, warnings_said: list[str] = ()) -> TaskResult:
     """processing -> ready and its waiting jobs sent, each told ``warnings_said`` (a ``warning`` event of stage
-    "ingest"); a mesh whose rendered views put its key over the upload quota (checked with the key locked, in the
-    transaction that would store the new size) fails instead."""
+    "ingest"; kept as the scene's ``warnings``, which the API tells the jobs created later); a mesh whose rendered
+    views put its key over the upload quota (checked with the key locked, in the transaction that would store the new
+    size) fails instead."""
     with session_scope() as session:
         over = "size_bytes" in values and ingest_over_quota(session, scene_id, values["size_bytes"], settings)
-        waiting = None if over else mark_ready(session, scene_id, where=[Scene.ingest_token == token], **values)
+        waiting = None if over else mark_ready(session, scene_id, where=[Scene.ingest_token == token],
+                                               warnings=list(warnings_said), **values)
         if waiting is None:
             session.rollback()
         else:

@@ -25,7 +25,7 @@ from voxe_core.presets import check_fit, reconstruction_key, reconstruction_para
 from voxe_service.datasets import MESH_FORMAT
 from voxe_service import webhooks
 from voxe_service.db import get_sessionmaker
-from voxe_service.jobs import finish_jobs
+from voxe_service.jobs import finish_jobs, record_event
 from voxe_service.model_inventory import job_models, live_worker_models, unavailable_models
 from voxe_service.models import (
     CANCELED, EVALUATE, FAILED, PROCESSING, QUEUED, READY, TERMINAL_STATES, ApiKey, Job, Reconstruction, Scene,
@@ -156,7 +156,8 @@ def add_jobs(*, session: Session, key: ApiKey, settings: Settings, jobs: list[Jo
     The scenes' states are read after the jobs' rows are written, under a lock on each scene's
     row, so an ingest finishing meanwhile either sees these jobs or is seen as done: jobs on a
     ready scene are returned to be sent (422 for one its backbone cannot take: its ingest may have
-    decided since the submission looked), jobs on a processing one are left for its ingest, and a
+    decided since the submission looked), each edit told the scene's ``warnings`` (as its ingest told
+    the jobs waiting for it), jobs on a processing one are left for its ingest, and a
     scene that failed meanwhile refuses them all (409).
     """
     refuse_without_models(session=session, settings=settings, jobs=jobs)
@@ -174,18 +175,21 @@ def add_jobs(*, session: Session, key: ApiKey, settings: Settings, jobs: list[Jo
                 raise scene_deleted(jobs) from None
             raise
         check_active_jobs(session, key, settings, adding=len(jobs))
-        states = {}
+        states, warnings = {}, {}
         for scene_id in sorted({j.scene_id for j in jobs}):
             if (scene := lock_scene(session, scene_id)) is None:
                 raise scene_deleted(jobs)
             refuse_unless_usable(scene)
-            states[scene_id] = scene.state
+            states[scene_id], warnings[scene_id] = scene.state, scene.warnings or []
             for job in jobs:  # (its ingest may have decided since usable_scene read it processing)
                 if job.scene_id == scene_id and job.mode != EVALUATE:
                     refuse_unfit(scene, job.reconstruction.params)
         for job in jobs:
             if states[job.scene_id] == PROCESSING:
                 job.message = f"waiting for the scene {job.scene_id} to be processed (its upload is being decoded)"
+            elif job.mode != EVALUATE:  # told what its ingest told the jobs waiting for it (worker.ingest._ready)
+                for text in warnings[job.scene_id]:
+                    record_event(session, job.id, "warning", stage="ingest", detail=text)
         # A sweep's evaluation is not sent on its own: its task follows its edit's chain.
         to_send = [j for j in jobs if states[j.scene_id] == READY and not (j.mode == EVALUATE and j.batch_id)]
         if record is not None:
