@@ -2581,6 +2581,40 @@ def test_a_mesh_scene_job_voxelizes_the_uploaded_mesh_instead_of_fitting(client,
     assert names == ["initial_grid.safetensors", "preview.png"]
 
 
+def test_the_voxelize_route_tells_its_job_what_the_mesh_loads_without_unless_the_scene_did(client, root, monkeypatch):
+    """The voxelize route loads the scene's mesh again, and what it loads without (an OBJ's .mtl not sent) had been
+    said in the worker's log alone: a job on a scene whose warnings were not kept (ingested before migration 0022) was
+    never told. It is now a ``warning`` event of stage reconstruct; a job the scene's kept warnings told already is
+    not told it twice."""
+    from sqlalchemy import update
+
+    from voxe_service import datasets
+    from voxe_service.db import session_scope
+    from voxe_service.models import Scene
+    from worker import tasks
+
+    monkeypatch.setattr(datasets, "MESH_VIEWS", 2)
+    monkeypatch.setattr(datasets, "MESH_VIEW_SIZE", 32)
+    obj = ("mtllib model.mtl\nv 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nv 0 0 1\nusemtl red\nf 1 2 3\nf 1 3 4\nf 1 2 5\n")
+    scene = client.post("/v1/scenes", files=[("files", ("cube/m.obj", obj.encode(), "text/plain"))]).json()
+    assert ingest(scene["id"]) == {"scene_id": scene["id"], "state": "ready"}
+    said = ("m.obj: the material library its mtllib names, 'model.mtl', is not found beside it; the mesh loads "
+            "without its materials")
+
+    def voxelized(resolution: int) -> list[tuple[str, str]]:
+        job = client.post("/v1/jobs", json={"scene_id": scene["id"], "prompt": "a cube", "mode": "global",
+                                            "params": {"reconstruction": {"resolution": resolution}}}).json()
+        assert tasks.reconstruct_task.apply(args=(job["id"],)).get()["state"] == "done"
+        assert client.get(f"/v1/jobs/{job['id']}").json()["reconstruction"]["state"] == "succeeded"
+        events = client.get(f"/v1/jobs/{job['id']}/events").json()
+        return [(e["stage"], e["detail"]) for e in events if e["kind"] == "warning" and e["detail"] == said]
+
+    assert voxelized(24) == [("ingest", said)]  # told at its creation, once
+    with session_scope() as session:  # as a scene ingested before its warnings were kept
+        session.execute(update(Scene).where(Scene.id == scene["id"]).values(warnings=None))
+    assert voxelized(16) == [("reconstruct", said)]
+
+
 def test_a_mesh_scene_archive_keeps_the_uploaded_mesh(client, root, monkeypatch):
     from voxe_service.db import session_scope
     from voxe_service.models import Scene

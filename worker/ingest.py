@@ -70,18 +70,26 @@ def load_stored_mesh(dataset: Path):
     return shade_mesh(mesh, options.get("shading", "auto"))
 
 
+def load_stored_mesh_telling(dataset: Path):
+    """(:func:`load_stored_mesh`'s mesh, what it loaded without): its ``MeshWarning``s (an OBJ's .mtl not sent, which
+    had been said in the worker's log alone), files named as uploaded, without the worker's scratch path."""
+    kept = dataset / datasets.MESH_FOLDER
+    with warnings.catch_warnings(record=True) as said:
+        warnings.simplefilter("always", MeshWarning)
+        mesh = load_stored_mesh(dataset)
+    return mesh, [_as_uploaded(_relative_message(w.message, kept), kept) for w in said if w.category is MeshWarning]
+
+
 def render_mesh(root: Path) -> list[str]:
     """Render the mesh kept in ``root/mesh/`` into a NeRF-synthetic dataset in ``root`` (mesh input route (a)); what
-    it loaded without (``MeshWarning``s: an OBJ's .mtl not sent, which had been said in the worker's log alone)."""
+    it loaded without (:func:`load_stored_mesh_telling`)."""
     kept = root / datasets.MESH_FOLDER
     try:
-        with warnings.catch_warnings(record=True) as said:
-            warnings.simplefilter("always", MeshWarning)
-            mesh = load_stored_mesh(root)
+        mesh, loaded_without = load_stored_mesh_telling(root)
     except MeshError as exc:  # named as uploaded, without the worker's scratch path (Pillow's messages carry it)
         raise IngestError(f"invalid mesh: {_as_uploaded(_relative_message(exc, kept), kept)}") from None
     write_mesh_dataset(mesh, root, datasets.MESH_VIEWS, datasets.MESH_VIEW_SIZE)
-    return [_as_uploaded(_relative_message(w.message, kept), kept) for w in said if w.category is MeshWarning]
+    return loaded_without
 
 
 def _as_uploaded(message: str, kept: Path) -> str:

@@ -60,7 +60,7 @@ from voxe_service.storage import (ObjectNotFound, StorageError, StoredObject, ge
 from worker import runtime
 from worker.celery_app import app
 from worker.evaluation import EvaluationFailed, run_evaluation
-from worker.ingest import ingest_scene, load_stored_mesh
+from worker.ingest import ingest_scene, load_stored_mesh_telling
 from worker.inputs import fetch_grid, job_scene, load_images, recorded_initial_grid
 from worker.runtime import JobSkipped, StageCallbacks, StageCarriedOn, StageHeld
 
@@ -521,11 +521,18 @@ def _grid_file(job_id: str, rec, settings, storage) -> Path:
 
 
 def _voxelize(job: Job, rec, settings, storage):
-    """Route (b): the mesh scene's uploaded mesh written straight into G_i at the reconstruction's final resolution."""
+    """Route (b): the mesh scene's uploaded mesh written straight into G_i at the reconstruction's final resolution.
+    What the mesh loads without is a ``warning`` event of the stage, as the ingest's are (it had been said in the
+    worker's log alone), unless the scene's kept warnings told the job already (at its creation, or its ingest's end):
+    a scene ingested before they were kept (migration 0022) tells none."""
     from voxe_core.mesh_input import VoxelizeConfig, voxelize
 
-    with runtime.scene_dataset(job_scene(job), settings, storage) as dataset:
-        mesh = load_stored_mesh(dataset)
+    scene = job_scene(job)
+    with runtime.scene_dataset(scene, settings, storage) as dataset:
+        mesh, loaded_without = load_stored_mesh_telling(dataset)
+    for text in loaded_without:
+        if text not in (scene.warnings or ()):
+            runtime.record_warning(job.id, "reconstruct", text)
     config = reconstruct_config(rec.params, settings.checkpoint_every)
     return voxelize(mesh, VoxelizeConfig(resolution=config.resolutions[-1], bbox_min=config.bbox_min,
                                          bbox_max=config.bbox_max, seed=rec.params["seed"]))
