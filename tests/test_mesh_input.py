@@ -522,6 +522,34 @@ def test_vertices_no_face_uses_are_dropped_before_the_box_is_taken(tmp_path):
     assert np.array_equal(mesh.vertex_colors, np.tile([[1.0, 0.0, 0.0]], (len(ball.vertices), 1)))
 
 
+def test_loading_a_stored_mesh_tells_its_mesh_warnings_and_still_shows_the_others(tmp_path, monkeypatch):
+    """The ingest and the voxelize route collect the loader's MeshWarnings (told to the jobs, files named as
+    uploaded), recording every warning as they do: any other (numpy's on a degenerate face's normal, Pillow's on a
+    large texture) had been dropped, said nowhere, not even in the worker's log. It is shown as before."""
+    import json
+    import warnings
+
+    from voxe_core.mesh_input import MeshWarning
+    from worker import ingest
+
+    (tmp_path / "mesh").mkdir()
+    (tmp_path / "mesh" / "names.json").write_text(json.dumps({"mesh.obj": "chair.obj"}))
+
+    def load_stored_mesh(dataset):
+        warnings.warn("invalid value encountered in divide", RuntimeWarning)
+        warnings.warn("mesh.obj: the material library its mtllib names, 'chair.mtl', is not found beside it",
+                      MeshWarning)
+        return "the mesh"
+
+    monkeypatch.setattr(ingest, "load_stored_mesh", load_stored_mesh)
+    with warnings.catch_warnings(record=True) as shown:
+        warnings.simplefilter("always")
+        mesh, told = ingest.load_stored_mesh_telling(tmp_path)
+    assert (mesh, told) == ("the mesh", ["chair.obj: the material library its mtllib names, 'chair.mtl', is not "
+                                         "found beside it"])
+    assert [(w.category, str(w.message)) for w in shown] == [(RuntimeWarning, "invalid value encountered in divide")]
+
+
 def test_a_mesh_scene_stored_before_frames_keeps_the_frame_its_views_were_rendered_in(tmp_path):
     """Its ingest rendered its views with every vertex setting the box and no shrink into the views; its voxelize
     route reads the stored mesh again, which had now been placed otherwise (a cube at 0.75 of its views' size, a

@@ -72,11 +72,15 @@ def load_stored_mesh(dataset: Path):
 
 def load_stored_mesh_telling(dataset: Path):
     """(:func:`load_stored_mesh`'s mesh, what it loaded without): its ``MeshWarning``s (an OBJ's .mtl not sent, which
-    had been said in the worker's log alone), files named as uploaded, without the worker's scratch path."""
+    had been said in the worker's log alone), files named as uploaded, without the worker's scratch path. Any other
+    warning is shown as it would have been (the worker's log): recorded with them, it had been dropped unsaid."""
     kept = dataset / datasets.MESH_FOLDER
     with warnings.catch_warnings(record=True) as said:
         warnings.simplefilter("always", MeshWarning)
         mesh = load_stored_mesh(dataset)
+    for other in said:
+        if other.category is not MeshWarning:
+            warnings.showwarning(other.message, other.category, other.filename, other.lineno)
     return mesh, [_as_uploaded(_relative_message(w.message, kept), kept) for w in said if w.category is MeshWarning]
 
 
