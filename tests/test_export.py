@@ -684,6 +684,22 @@ def test_colour_samples_set_how_many_samples_colour_each_vertex(make_sphere_grid
     assert not np.array_equal(colours, extract_mesh(grid).visual.vertex_colors[:, :3])
 
 
+@pytest.mark.parametrize("resolution", [None, 24])
+def test_a_mesh_extracted_under_a_callers_bf16_autocast_is_the_float32_one(make_sphere_grid, resolution):
+    """The resampled lattice's density and the vertices' colours are looked up by VoxelGrid.interpolate's bmm, which a
+    caller's bf16 autocast had run in bf16: vertices up to 2e-4 off and colours 1 off (the renderer's float32 under
+    autocast is the rule)."""
+    grid = make_sphere_grid(16, slope=0.3)
+    with torch.no_grad():
+        ramp = torch.linspace(-3.0, 3.0, 16)
+        grid.features[..., 1:] = torch.stack(torch.meshgrid(ramp, ramp, ramp, indexing="ij"), -1)
+    expected = extract_mesh(grid, resolution=resolution)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        mesh = extract_mesh(grid, resolution=resolution)
+    assert np.array_equal(mesh.vertices, expected.vertices) and np.array_equal(mesh.faces, expected.faces)
+    assert np.array_equal(mesh.visual.vertex_colors, expected.visual.vertex_colors)
+
+
 @pytest.mark.parametrize("colour_samples", [0, -1])
 def test_a_vertex_colour_needs_a_sample(sphere_grid, colour_samples):
     with pytest.raises(ValueError, match="at least 1 sample"):

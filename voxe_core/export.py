@@ -28,7 +28,7 @@ import torch
 
 from voxe_core.cameras import Cameras, ring_poses
 from voxe_core.constants import NERF_SYNTHETIC_FOV_X, NERF_SYNTHETIC_RADIUS
-from voxe_core.devices import PeakMemory, resolve_device
+from voxe_core.devices import PeakMemory, full_precision, resolve_device
 from voxe_core.files import replacing
 from voxe_core.grid import VoxelGrid
 from voxe_core.presets import check_video_fps
@@ -441,7 +441,8 @@ def default_mesh_level(grid: VoxelGrid) -> float:
 
 
 def _lattice_density(grid: VoxelGrid, lo: torch.Tensor, hi: torch.Tensor, spacing: torch.Tensor) -> torch.Tensor:
-    """Activated density at lattice points bbox_min + i·spacing, lo <= i <= hi (per axis)."""
+    """Activated density at lattice points bbox_min + i·spacing, lo <= i <= hi (per axis), in float32 whatever autocast
+    says (a caller's bf16 autocast had run the interpolation's bmm in bf16: vertices up to 2e-4 off)."""
     axes = [
         torch.arange(int(lo[d]), int(hi[d]) + 1, dtype=torch.float32) * spacing[d] + grid.bbox_min[d] for d in range(3)
     ]
@@ -453,7 +454,8 @@ def _lattice_density(grid: VoxelGrid, lo: torch.Tensor, hi: torch.Tensor, spacin
     for start in range(0, shape[0], slabs):
         xs = axes[0][start : start + slabs]
         points = torch.cat([xs.repeat_interleave(plane)[:, None], yz.repeat(len(xs), 1)], dim=1)
-        raw = grid.interpolate(points)[:, 0]
+        with full_precision(points):
+            raw = grid.interpolate(points)[:, 0]
         out[start : start + len(xs)] = grid.activate_density(raw).reshape(len(xs), shape[1], shape[2])
     return out
 
@@ -556,7 +558,8 @@ def _surface_colours(grid: VoxelGrid, verts: np.ndarray, normals: np.ndarray,
     The colour at the vertex itself had been the mesh's: on the level set the raw colour is interpolated with the
     empty vertices just outside, whose colour no render shows (a fit leaves them near their grey start), so a red
     object (230, 25, 25 in its renders) had come out a pinkish grey (146, 109, 109). A vertex whose span holds no
-    density keeps its own colour."""
+    density keeps its own colour. In float32 whatever autocast says, as the renderer (a caller's bf16 autocast had run
+    the lookups' bmm in bf16)."""
     voxel = float(grid.voxel_size.min())
     first, last = SURFACE_COLOUR_SPAN
     step = (last - first) / samples
@@ -573,11 +576,12 @@ def _surface_colours(grid: VoxelGrid, verts: np.ndarray, normals: np.ndarray,
             delta=torch.full((len(at) * samples,), step * voxel),
             points=(at[:, None, :] + depths[None, :, None] * towards[:, None, :]).reshape(-1, 3),
         )
-        ray = composite([along_normal], grid.query, len(at), torch.zeros(3))
-        colour = ray.rgb / ray.opacity.clamp_min(1e-12)[:, None]
-        empty = (ray.opacity <= 1e-6).nonzero().squeeze(1)
-        if len(empty):
-            colour[empty] = grid.query(at[empty])[1].float()
+        with full_precision(at):
+            ray = composite([along_normal], grid.query, len(at), torch.zeros(3))
+            colour = ray.rgb / ray.opacity.clamp_min(1e-12)[:, None]
+            empty = (ray.opacity <= 1e-6).nonzero().squeeze(1)
+            if len(empty):
+                colour[empty] = grid.query(at[empty])[1].float()
         colours[start : start + per_chunk] = to_uint8(colour)
     return colours
 
