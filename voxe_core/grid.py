@@ -28,6 +28,7 @@ import torch
 import torch.nn.functional as F
 
 from voxe_core.cameras import Cameras
+from voxe_core.devices import full_precision
 from voxe_core.gridfile import (
     DEFAULT_MARGIN, GRID_FORMAT_VERSION, MIN_FLOAT_BITS, float_dtype_problem, payload_bytes, sparse_tensors,
 )
@@ -536,8 +537,11 @@ class VoxelGrid(torch.nn.Module):
 
     @torch.no_grad()
     def _stop_early(self, samples: RaySamples, early_stop: float) -> RaySamples:
-        """``samples`` up to where each ray's transmittance falls below ``early_stop`` (densities without gradient)."""
-        density = self.activate_density(self.interpolate(samples.points)[:, 0])
+        """``samples`` up to where each ray's transmittance falls below ``early_stop`` (densities without gradient), in
+        float32 whatever autocast says: a caller's bf16 autocast (the back-projection iterates these samples in its own)
+        had run the interpolation's bmm in bf16, so rays had stopped at other samples than the render's."""
+        with full_precision(samples.points):
+            density = self.activate_density(self.interpolate(samples.points)[:, 0])
         # "not at most": a NaN keeps its sample and those behind it, so the render shows it rather than ending there.
         reached = ~(transmittance(optical_depth(density, samples.delta), samples.ray) <= early_stop)
         kept = samples.select(reached.nonzero().squeeze(1))
