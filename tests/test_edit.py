@@ -236,6 +236,19 @@ def test_a_batch_size_past_the_services_limit_is_refused_naming_it():
             make()
 
 
+@pytest.mark.parametrize("rays", [2**24 + 1, 2**40, 2**63])
+def test_image_regulariser_rays_past_the_largest_steps_renders_are_refused_naming_the_bound(rays):
+    """Any count had been taken: 2**40 failed at the first step, once the model had loaded and rendered, allocating
+    8 TiB of pixel indices; 2**63 as a TypeError from torch.randint naming no setting."""
+    from voxe_core.constants import MAX_IMAGE_REGULARISER_RAYS
+
+    assert MAX_IMAGE_REGULARISER_RAYS == 16 * 1024**2 == 2**24
+    assert EditConfig(image_regulariser_rays=2**24).image_regulariser_rays == 2**24
+    with pytest.raises(ValueError, match=rf"^image_regulariser_rays must be at most 16777216 \(as many rays as the "
+                                         rf"largest step's renders: batch_size 16 of 1024 px\), got {rays}$"):
+        EditConfig(image_regulariser_rays=rays)
+
+
 @pytest.mark.parametrize("name, value, rule", [
     ("batch_size", 0, ">= 1"), ("image_regulariser_rays", -4, ">= 1"), ("lr_decay_every", 0, ">= 1"),
     ("lr_decay_start", -1, ">= 0"), ("preview_every", -1, ">= 0 (0 turns it off)"),

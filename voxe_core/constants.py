@@ -103,6 +103,10 @@ MAX_BATCH_SIZE = 16
 """The most poses an edit renders per iteration (``batch_size``; the service's bound, and the CLI's through
 ``EditConfig``): each is rendered with its autograd graph held until the step's backward."""
 
+MAX_IMAGE_REGULARISER_RAYS = MAX_BATCH_SIZE * MAX_RENDER_SIZE**2
+"""The most rays an edit's image regulariser (``image_l1`` / ``image_l2``) renders per iteration: as many as the
+largest step's renders hold (``MAX_BATCH_SIZE`` of ``MAX_RENDER_SIZE``² pixels), each with its autograd graph."""
+
 REFINE_RAYS_PER_STEP = 8192
 """Rays per attention-grid fitting step."""
 

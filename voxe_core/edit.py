@@ -78,6 +78,8 @@ from voxe_core.constants import (
     EDIT_LR,
     FLOAT32_MAX,
     MAX_BATCH_SIZE,
+    MAX_IMAGE_REGULARISER_RAYS,
+    MAX_RENDER_SIZE,
     MAX_SEED,
     NERF_SYNTHETIC_FOV_X,
     NERF_SYNTHETIC_RADIUS,
@@ -240,6 +242,12 @@ class EditConfig:
         if self.batch_size > MAX_BATCH_SIZE:
             raise ValueError(f"batch_size must be at most {MAX_BATCH_SIZE} (the service's and the CLI's limit), got "
                              f"{self.batch_size}")
+        # (any had been taken: 2**40 failed at the first step, once the model had loaded and rendered, allocating its
+        # rays' 8 TiB of pixel indices; 2**63 as a TypeError from torch.randint naming no setting)
+        if self.image_regulariser_rays > MAX_IMAGE_REGULARISER_RAYS:
+            raise ValueError(f"image_regulariser_rays must be at most {MAX_IMAGE_REGULARISER_RAYS} (as many rays as the "
+                             f"largest step's renders: batch_size {MAX_BATCH_SIZE} of {MAX_RENDER_SIZE} px), got "
+                             f"{self.image_regulariser_rays}")
         if not 0 < self.lr_decay_factor <= 1:  # (NaN too)
             raise ValueError(f"lr_decay_factor must be in (0, 1], got {self.lr_decay_factor}")
         if not 0.0 <= self.min_zenith_deg <= self.max_zenith_deg <= 180.0:  # (NaN too; had named neither field)
