@@ -65,6 +65,9 @@ UP_AGREEMENT = 1.5
 """The length the mean of N cameras' unit image up axes must reach, times sqrt(N) (at most 0.5: an upright ring up to
 60° above the horizon's), for ``scene_frame`` to take it as up: the mean of N axes rolled every way (a top-down capture
 turned about its axes) is about 1 / sqrt(N) long, a direction of chance."""
+UPRIGHT_TOLERANCE_DEG = 30.0
+"""How far a camera's image up may be rolled from its view's upright one for ``scene_frame`` to count the capture
+upright about its short mean up axis (an upright ring high above or below the object), and take that mean silently."""
 EARLY_STOP_CAP = 1e-6
 """The scene sampler stops rays at transmittance min(``early_stop``, this). Behind the cut lies the
 room, not the white background the compositor puts there, so the density gradient of the last kept
@@ -356,7 +359,8 @@ def scene_frame(cameras: Cameras, radius: float = NERF_SYNTHETIC_RADIUS) -> torc
     displayed (phones are held upright; ``Cameras.display_up``: +y unless an EXIF
     orientation turns the image: a portrait photo stored landscape had put up
     sideways, and edits' views rolled 90°) turned onto +z; where those cancel out (``UP_AGREEMENT``: images rolled every
-    way), opposite the cameras' mean view direction, with a warning. Scale: the mean camera
+    way), opposite the cameras' mean view direction, with a warning, unless every camera is upright about their short
+    mean (``UPRIGHT_TOLERANCE_DEG``: a ring high above the object). Scale: the mean camera
     distance becomes ``radius``.
     Raises ``ValueError`` for a single camera, when the axes are (nearly) parallel (a forward-facing
     capture has no centre to orbit), the centre lies behind most cameras (poses
@@ -389,8 +393,9 @@ def scene_frame(cameras: Cameras, radius: float = NERF_SYNTHETIC_RADIUS) -> torc
             "only in that case multiply each camera-to-world matrix by diag(1, -1, -1, 1)"
         )
     image_up = c2w.new_tensor([0.0, 1.0, 0.0]) if cameras.display_up is None else cameras.display_up.double()
-    up = torch.einsum("nij,nj->i", c2w[:, :3, :3], image_up.expand(len(cameras), 3)) / len(cameras)
-    if float(up.norm()) < min(0.5, UP_AGREEMENT / math.sqrt(len(cameras))):
+    ups = torch.einsum("nij,nj->ni", c2w[:, :3, :3], image_up.expand(len(cameras), 3))
+    up = ups.mean(0)
+    if float(up.norm()) < min(0.5, UP_AGREEMENT / math.sqrt(len(cameras))) and not _upright_about(up, ups, forward):
         # (40 cameras 5-30° off the vertical, each rolled at random, had set the scene on its side, no word said)
         look_down = -forward.mean(0)  # cameras above what they look at: up is opposite their mean view
         clearly_opposite = float(up @ look_down) < -0.5 * float(up.norm() * look_down.norm())  # upright, from below
@@ -410,6 +415,19 @@ def scene_frame(cameras: Cameras, radius: float = NERF_SYNTHETIC_RADIUS) -> torc
     frame[:3, :3] = scale * rotation
     frame[:3, 3] = -scale * rotation @ centre
     return frame.float()
+
+
+def _upright_about(up: torch.Tensor, ups: torch.Tensor, forward: torch.Tensor) -> bool:
+    """Whether every camera's image up ``ups`` (N, 3) is within ``UPRIGHT_TOLERANCE_DEG`` of its view's upright one
+    about ``up`` (a camera looking along it is upright at any roll): then the mean of the axes is short only because the
+    views look steeply down (or up) at the object, and is up. An upright ring 70° above the horizon had been told that
+    its image up axes cancel out (images rolled every way, or a capture from straight above)."""
+    if not float(up.norm()) > 0:
+        return False
+    direction = up / up.norm()
+    upright = direction - (forward @ direction)[:, None] * forward  # its length: the sine of the view's angle to up
+    agreement = (ups * upright).sum(-1)
+    return bool((agreement >= math.cos(math.radians(UPRIGHT_TOLERANCE_DEG)) * upright.norm(dim=-1) - 1e-9).all())
 
 
 def _rotation_onto_z(v: torch.Tensor) -> torch.Tensor:
