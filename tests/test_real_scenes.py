@@ -616,6 +616,20 @@ def test_mesh_export_of_a_scene_grid_is_its_foreground_in_the_canonical_frame():
     assert 0.5 < float(np.linalg.norm(mesh.vertices, axis=1).mean()) < 1.0
 
 
+def test_a_scene_grids_foreground_taken_under_a_callers_bf16_autocast_is_the_float32_one():
+    """Its resampling (VoxelGrid.interpolate's bmm) had run in bf16 under a caller's autocast: raw features 0.011 off,
+    and with them the orbit centre every turntable and edit pose circles (3e-4 off), the mesh and the edit's camera
+    check (the renderer's float32 under autocast is the rule)."""
+    grid = SceneGrid(12, foreground_extent=1.2, near_samples=4, far_samples=8, far_ratio=50.0)
+    with torch.no_grad():
+        grid.features.normal_(generator=torch.Generator().manual_seed(0))
+    expected, centre = grid.foreground_grid(), grid.orbit_centre()
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        foreground, orbit_centre = grid.foreground_grid(), grid.orbit_centre()
+    assert foreground.features.dtype == torch.float32 and torch.equal(foreground.features, expected.features)
+    assert torch.equal(orbit_centre, centre)
+
+
 def test_a_scene_grid_two_vertices_wide_has_a_foreground_to_orbit_and_mesh():
     """Regression: its foreground grid was 1 vertex wide along that axis, refused as a grid, so its orbit centre (every
     turntable and evaluation ring of it) and its mesh failed with "grid resolution must be >= 2 per axis, got

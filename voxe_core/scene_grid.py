@@ -46,6 +46,7 @@ import torch
 
 from voxe_core.cameras import Cameras
 from voxe_core.constants import FLOAT32_MAX, NERF_SYNTHETIC_RADIUS
+from voxe_core.devices import full_precision
 from voxe_core.grid import Activation, Occupancy, VoxelGrid, default_density_scale, ray_box_intersection
 from voxe_core.tensorio import FormatError, is_number
 from voxe_core.volrend import RaySamples
@@ -208,13 +209,16 @@ class SceneGrid(VoxelGrid):
         The contraction is the identity there, so this is the object without its
         background (``export.extract_mesh`` meshes it). Exact when (resolution − 1)
         is a multiple of 4 (the cube's faces fall on lattice vertices), resampled otherwise; at least 2 vertices per
-        axis (a lattice of 2 has its cube between its vertices, and a grid needs 2).
+        axis (a lattice of 2 has its cube between its vertices, and a grid needs 2). In float32 whatever autocast says
+        (a caller's bf16 autocast had run the interpolation's bmm in bf16: features 0.011 off, and the orbit centre,
+        the mesh and the edit's camera check read them).
         """
         fg = self.foreground_extent
         n = [max(2, (r - 1) // 2 + 1) for r in self.resolution]
         axes = [torch.linspace(-fg, fg, k) for k in n]
         points = torch.stack(torch.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
-        features = self.interpolate(self.lattice_points(points.to(self.bbox_min.device)))
+        with full_precision(self.features):
+            features = self.interpolate(self.lattice_points(points.to(self.bbox_min.device)))
         return VoxelGrid(tuple(n), (-fg,) * 3, (fg,) * 3, self.activation, self.density_scale,
                          features=features.reshape(*n, 4))
 
