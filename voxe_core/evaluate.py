@@ -43,7 +43,7 @@ from voxe_core.constants import (
     CLIP_MODEL_ID, EVALUATION_RING_ELEVATION, EVALUATION_RING_SIZE, EVALUATION_RING_VIEWS, INCEPTION_FILE,
     inception_path,
 )
-from voxe_core.devices import PeakMemory, resolve_device
+from voxe_core.devices import PeakMemory, full_precision, resolve_device
 from voxe_core.export import iter_views, render_views, to_uint8, turntable_cameras
 from voxe_core.grid import VoxelGrid
 from voxe_core.guidance.loading import (
@@ -423,8 +423,10 @@ def _unit(x: torch.Tensor, eps: float = 1e-12) -> torch.Tensor:
 
 
 def clip_similarity(image_embeddings: torch.Tensor, text_embedding: torch.Tensor) -> float:
-    """Mean cosine between each image embedding (N, D) and one text embedding (D,)."""
-    return float((_unit(image_embeddings) @ _unit(text_embedding.reshape(-1))).mean())
+    """Mean cosine between each image embedding (N, D) and one text embedding (D,), in float32 whatever autocast says
+    (a caller's bf16 autocast had run the product in bf16: -0.00098 for -0.00094)."""
+    with full_precision(image_embeddings, text_embedding):
+        return float((_unit(image_embeddings) @ _unit(text_embedding.reshape(-1))).mean())
 
 
 def clip_direction(edit_images: torch.Tensor, recon_images: torch.Tensor, edit_text: torch.Tensor,
@@ -432,13 +434,14 @@ def clip_direction(edit_images: torch.Tensor, recon_images: torch.Tensor, edit_t
     """Mean over view pairs of cos(image_edit − image_recon, text_edit − text_source).
 
     Embeddings are unit-normalised first (as CLIP compares them). A view whose
-    image did not change contributes 0.
+    image did not change contributes 0. In float32 whatever autocast says, as :func:`clip_similarity`.
     """
     if edit_images.shape != recon_images.shape:
         raise ValueError(f"CLIP_dir pairs views: {tuple(edit_images.shape)} vs {tuple(recon_images.shape)}")
     image_change = _unit(_unit(edit_images) - _unit(recon_images))
     text_change = _unit(_unit(edit_text.reshape(-1)) - _unit(source_text_embedding.reshape(-1)))
-    return float((image_change @ text_change).mean())
+    with full_precision(image_change, text_change):
+        return float((image_change @ text_change).mean())
 
 
 # --------------------------------------------------------------------------- the evaluation
