@@ -13,6 +13,7 @@ pays per pass. Groups hold whole rays and draw nothing of their own, so the outp
 
     python bench/render_passes.py            # ~5 min on 2 cores
     python bench/render_passes.py --transmittance --repeats 4   # ~3 min, one thread
+    python bench/render_passes.py --precision-fixes --repeats 9  # ~5 min, one thread
 
 Writes bench/results/render_passes.json and .png; prints a table. ``--transmittance`` instead times the packed
 transmittance (``volrend.transmittance``: one float64 prefix sum over the pass, its rounding errors added back per
@@ -23,6 +24,16 @@ alone (bench/results/render_passes_transmittance.json and .png). Times are this 
 repeats, compared within one scene as ratios), operations are aten calls counted by a dispatch mode (the same on
 any device), memory is ``PeakMemory``'s during one render (the process's resident peak on CPU). bench/gpu.py's
 section h runs :func:`measure` on the GPU.
+
+``--precision-fixes`` times three float-precision changes of 2026-12-07 against their predecessors (re-implemented
+here, swapped in by ``mock``) in alternating pairs, one thread, beside what each bought: (a) ``render_rays`` moving
+rays that start farther than the box's diagonal to the box in float64 (5db286d): the edit's render + backward of the
+sphere from the edit's cameras (none moved) and along the same lines from 1e5 and 1e7 units, against the same lines'
+render from 4 units out; (b) the correlation regulariser as ½‖â − b̂‖² through ``F.mse_loss`` (18e9312) against
+1 − â·b̂: reg3d and reg3d_plus forward + backward at 160³, value and gradient against float64 Pearson at G_e = G_i + δ
+noise (δ = 0, the edit's first step, 1e-4 and 1e-2); (c) the occupied cells' tight box ending at ``bbox_max``
+(e25adf2): ``occupancy_from_cells`` on both scenes' cells, and the opacity of rays lying in the faces of a 38-vertex
+grid against the render without skipping (bench/results/render_passes_precision_fixes.json and .png).
 """
 
 from __future__ import annotations
@@ -33,7 +44,7 @@ import os
 import statistics
 import sys
 import time
-from contextlib import ExitStack
+from contextlib import ExitStack, nullcontext
 from pathlib import Path
 from unittest import mock
 
@@ -44,10 +55,13 @@ HERE = Path(__file__).resolve().parent
 sys.path[:0] = [str(HERE.parent), str(HERE)]
 from edit_step import sphere_grid  # noqa: E402
 
+import voxe_core.render as render_module  # noqa: E402
+from voxe_core import losses  # noqa: E402
 from voxe_core.cameras import Cameras, camera_rays, random_hemisphere_poses  # noqa: E402
-from voxe_core.devices import PeakMemory, synchronize  # noqa: E402
+from voxe_core.devices import PeakMemory, full_precision, synchronize  # noqa: E402
 from voxe_core.edit import EditConfig  # noqa: E402
-from voxe_core.grid import VoxelGrid  # noqa: E402
+from voxe_core.grid import Occupancy, VoxelGrid  # noqa: E402
+from voxe_core.losses import CORRELATED_CHANNELS, volumetric_regulariser  # noqa: E402
 from voxe_core.render import RenderConfig, composite, render_rays  # noqa: E402
 from voxe_core.volrend import RaySamples, host_reads_are_free, optical_depth, transmittance  # noqa: E402
 
@@ -361,15 +375,311 @@ def record_transmittance(repeats: int, out: Path) -> dict:
     return rows
 
 
+# --precision-fixes: three float-precision changes of 2026-12-07 against their predecessors, re-implemented here.
+FAR = (1e5, 1e7)  # the edit's lines, their origins moved back along them this far (float32 origins, as a caller's)
+
+
+def _not_moved(grid: VoxelGrid, origins: torch.Tensor, directions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """``render._moved_to_the_box`` before 5db286d, when there was none: every origin rounded to float32 where it is
+    (the depth's ``+ shift`` of a zero shift still runs after it: one (N,) ``where``)."""
+    return origins, torch.zeros(origins.shape[0], device=origins.device)
+
+
+def _dot_product_correlation_with(standardised_initial: tuple[torch.Tensor, torch.Tensor], edited: torch.Tensor,
+                                  eps: float) -> torch.Tensor:
+    """``losses._correlation_loss_with`` before 18e9312: 1 − â·b̂ of the standardised grids in float32."""
+    a, _ = standardised_initial
+    with full_precision(a, edited):
+        b, _ = losses._standardise(edited, eps)
+        return 1.0 - (a * b).sum()
+
+
+def _box_at_the_last_vertex(self: VoxelGrid, cells: torch.Tensor) -> Occupancy:
+    """``VoxelGrid.occupancy_from_cells`` before e25adf2: the tight box ends at bbox_min + hi · voxel, which float32
+    rounds inside the far face for some lattices."""
+    lo, hi = [], []
+    for axis in range(3):
+        along = cells.any(dim=[a for a in range(3) if a != axis]).to(torch.uint8)
+        lo.append(along.argmax())
+        hi.append(along.numel() - along.flip(0).argmax())
+    vox = self._lattice(cells.device).voxel_size
+    occupied = cells.any()
+    box_min = torch.where(occupied, self.bbox_min + torch.stack(lo) * vox, self.bbox_min)
+    box_max = torch.where(occupied, self.bbox_min + torch.stack(hi) * vox, self.bbox_min)
+    return Occupancy(cells, box_min, box_max)
+
+
+# change -> (what its predecessor replaces, with what)
+FIXES = {"far rays moved to the box (5db286d)": (render_module, "_moved_to_the_box", _not_moved),
+         "correlation regulariser as ½‖â − b̂‖² (18e9312)": (losses, "_correlation_loss_with",
+                                                              _dot_product_correlation_with),
+         "tight box ends at bbox_max (e25adf2)": (VoxelGrid, "occupancy_from_cells", _box_at_the_last_vertex)}
+VARIANTS_OF_A_FIX = ("default", "before")
+
+
+def as_it_was(change: str, variant: str):
+    """The code of ``change`` as ``variant`` ("default": today's; "before": its predecessor), a context manager."""
+    return mock.patch.object(*FIXES[change]) if variant == "before" else nullcontext()
+
+
+def _relative(value: torch.Tensor, reference: torch.Tensor) -> float:
+    """max |value − reference| over the largest |reference| (0 where both are 0)."""
+    scale = float(reference.abs().max())
+    difference = float((value.double() - reference.double()).abs().max())
+    return difference / scale if scale else difference
+
+
+def _far_lines(rays, distance: float):
+    """The edit's lines with float32 origins ``distance`` back along them, and the same (float32) lines' points 4
+    units out, as the reference's origins: (far origins, near origins, unit directions)."""
+    directions = torch.nn.functional.normalize(rays[1].double(), dim=-1).float()  # as given: float32
+    far = (rays[0].double() - distance * directions.double()).float()
+    return far, (far.double() + (distance - 4.0) * directions.double()).float(), directions
+
+
+def _pearson_loss64(initial: torch.Tensor, edited: torch.Tensor, channels) -> tuple[float, torch.Tensor]:
+    """The regulariser's value and gradient in float64 (1 − Pearson's r per channel: density + mean of colours)."""
+    edited = edited.detach().double().requires_grad_(True)
+    terms = []
+    for c in channels:
+        a, b = initial[..., c].double().reshape(-1), edited[..., c].reshape(-1)
+        a, b = a - a.mean(), b - b.mean()
+        terms.append(1 - (a * b).sum() / (a.norm() * b.norm()))
+    loss = terms[0] + torch.stack(terms[1:]).mean() if len(terms) > 1 else terms[0]
+    loss.backward()
+    return float(loss.detach()), edited.grad
+
+
+def rays_in_the_faces(grid: VoxelGrid) -> tuple[torch.Tensor, torch.Tensor]:
+    """12 rays (origins, unit directions) lying in the faces of ``grid``'s box, through the middle of each face
+    along each of its two axes, from 5 units before the box."""
+    low, high = grid.bbox_min, grid.bbox_max
+    origins, directions = [], []
+    for axis in range(3):
+        for face in (low[axis], high[axis]):
+            for travel in {0, 1, 2} - {axis}:
+                origin = (low + high) / 2
+                origin[axis], origin[travel] = face, low[travel] - 5.0
+                origins.append(origin)
+                directions.append(torch.eye(3)[travel])
+    return torch.stack(origins), torch.stack(directions)
+
+
+def coloured_sphere(resolution: int) -> VoxelGrid:
+    """edit_step's sphere with colours varying along x, y and z (reg3d_plus's colour terms are not constant)."""
+    grid = sphere_grid(resolution)
+    axis = torch.linspace(-1.0, 1.0, resolution)
+    with torch.no_grad():
+        for c in range(3):
+            grid.features[..., 1 + c] = axis.view([-1 if d == c else 1 for d in range(3)])
+    return grid
+
+
+def measure_precision_fixes(repeats: int) -> list[dict]:
+    """Per change of :data:`FIXES` and case: today's code and its predecessor timed in alternating pairs (the order
+    flipped each round; wall and this process's CPU time), medians and each round's ratio before / default (median,
+    min, max), beside each variant's error against a reference and the variants' differences (output and
+    gradient). Cases without a timing hold the accuracy alone."""
+    rays = edit_rays(EditConfig().render_size)
+    sphere, fog = sphere_grid(160), fog_grid(96)
+    config = EditConfig().render
+    cases: dict[tuple[str, str], dict] = {}  # (change, case) -> {"run": callable or None, "outputs": per variant}
+
+    def add(change: str, case: str, run, outputs, reference=None, inner: int = 1) -> None:
+        cases[change, case] = {"run": run, "outputs": outputs, "reference": reference, "inner": inner}
+
+    # (a) the edit's rays through the sphere (radius 4.03: none moved), and the same lines from 1e5 and 1e7 units
+    far_rays = "far rays moved to the box (5db286d)"
+    sphere.flat_features.requires_grad_(True)
+    for distance in (None, *FAR):
+        if distance is None:  # reference: today's render of the same rays
+            label, lines = "sphere 160³: the edit's rays (none moved)", rays
+            truth = render_once(sphere, rays, config)[:2]
+        else:  # reference: the same float32 lines from 4 units out, today's render
+            far, near, directions = _far_lines(rays, distance)
+            label, lines = f"sphere 160³: the same lines from {distance:.0e}", (far, directions)
+            truth = render_once(sphere, (near, directions), config)[:2]
+        outputs = {}
+        for v in VARIANTS_OF_A_FIX:
+            with as_it_was(far_rays, v):
+                outputs[v] = render_once(sphere, lines, config)[:2]
+        add(far_rays, label, lambda lines=lines: backward(sphere, render(sphere, lines, config).rgb), outputs, truth)
+    moved = {}
+    for v in VARIANTS_OF_A_FIX:  # the origins the renderer goes on with
+        with as_it_was(far_rays, v):
+            moved[v] = render_module._moved_to_the_box(sphere, *rays)[0], None
+    add(far_rays, f"the move alone: {rays[0].shape[0]:,} edit's rays", lambda: render_module._moved_to_the_box(
+        sphere, *rays), moved, inner=10)  # (looked up when called: the patched one under "before")
+    # (b) the edit's default regulariser (reg3d) and reg3d_plus at 160³, G_e = G_i + δ noise; δ = 0 is the first step
+    regulariser = "correlation regulariser as ½‖â − b̂‖² (18e9312)"
+    initial = coloured_sphere(160).features.detach()
+    noise = torch.randn(initial.shape, generator=torch.Generator().manual_seed(0))
+    for kind in ("reg3d", "reg3d_plus"):
+        loss_of = volumetric_regulariser(kind, initial)  # G_i standardised once per edit: not timed
+        for delta in (1e-4, 0.0, 1e-2):
+            edited = (initial + delta * noise).requires_grad_(True)
+            outputs = {}
+            for v in VARIANTS_OF_A_FIX:
+                with as_it_was(regulariser, v):
+                    edited.grad = None
+                    loss = loss_of(edited)
+                    loss.backward()
+                    outputs[v] = loss.detach().reshape(1), edited.grad.clone()
+            value64, grad64 = _pearson_loss64(initial, edited, CORRELATED_CHANNELS[kind]) if delta else \
+                (0.0, torch.zeros(edited.shape, dtype=torch.float64))  # G_e = G_i: exactly 0 and no gradient
+
+            def step(loss_of=loss_of, edited=edited) -> None:
+                edited.grad = None
+                loss_of(edited).backward()
+
+            # the cost does not depend on the values: timed once per kind
+            add(regulariser, f"{kind} 160³: δ = {delta:g}", step if delta == 1e-4 else None, outputs,
+                (torch.tensor([value64]), grad64), inner=3)
+    # (c) the occupancy's box on both scenes, and rays lying in the faces of a 38-vertex grid
+    tight_box = "tight box ends at bbox_max (e25adf2)"
+    for label, grid in (("sphere 160³", sphere), ("fog 96³", fog)):
+        cells = grid.occupancy(config.sigma_threshold).cells
+        outputs = {}
+        for v in VARIANTS_OF_A_FIX:
+            with as_it_was(tight_box, v):
+                box = grid.occupancy_from_cells(cells)
+            outputs[v] = torch.cat([box.bbox_min, box.bbox_max]), None
+        add(tight_box, f"occupancy_from_cells: {label}'s cells (box corners)",
+            lambda grid=grid, cells=cells: grid.occupancy_from_cells(cells), outputs, inner=20)
+    faces = VoxelGrid(38, init_density=0.05)  # its last vertex at -1.5 + 37 · 3/37 = 1.4999998 in float32
+    faces.flat_features.requires_grad_(True)
+    face_rays = rays_in_the_faces(faces)
+    outputs = {}
+    for v in VARIANTS_OF_A_FIX:
+        with as_it_was(tight_box, v):
+            out = render(faces, face_rays, config)
+            outputs[v] = out.opacity.detach(), backward(faces, out.rgb).clone()
+    unskipped = render(faces, face_rays, RenderConfig(**{**config.__dict__, "skip_empty": False}))
+    add(tight_box, "38³ uniform grid: 12 rays in its faces (opacity)", None, outputs,
+        (unskipped.opacity.detach(), backward(faces, unskipped.rgb).clone()))
+
+    times = {(key, v, clock): [] for key in cases for v in VARIANTS_OF_A_FIX for clock in ("ms", "cpu_ms")}
+    for round_ in range(-1, repeats):  # alternating pairs, the order flipped each round; round -1 warms up, untimed
+        for key, case in cases.items():
+            if case["run"] is None:
+                continue
+            for v in VARIANTS_OF_A_FIX[:: 1 if round_ % 2 == 0 else -1]:
+                with as_it_was(key[0], v):
+                    wall, cpu = time.perf_counter(), time.process_time()
+                    for _ in range(case["inner"]):
+                        case["run"]()
+                    if round_ < 0:
+                        continue
+                    times[key, v, "ms"].append((time.perf_counter() - wall) * 1e3 / case["inner"])
+                    times[key, v, "cpu_ms"].append((time.process_time() - cpu) * 1e3 / case["inner"])
+    rows = []
+    for (change, label), case in cases.items():
+        default_out, default_grad = case["outputs"]["default"]
+        for v in VARIANTS_OF_A_FIX:
+            out, grad = case["outputs"][v]
+            row = {"change": change, "case": label, "variant": v}
+            for clock in ("cpu_ms", "ms"):
+                mine, theirs = times[(change, label), v, clock], times[(change, label), "default", clock]
+                ratios = [m / d for m, d in zip(mine, theirs)]
+                row[clock] = statistics.median(mine) if mine else None
+                row[f"{clock}_ratio_to_default"] = statistics.median(ratios) if ratios else None
+                row[f"{clock}_ratio_min_max"] = [min(ratios), max(ratios)] if ratios else None
+            truth = case["reference"]
+            row["reference_value"] = float(truth[0]) if truth is not None and truth[0].numel() == 1 else None
+            row["max_error"] = _relative(out, truth[0]) if truth is not None else None
+            row["gradient_error"] = _relative(grad, truth[1]) if truth is not None and grad is not None else None
+            row["max_difference_from_default"] = float((out.double() - default_out.double()).abs().max())
+            row["gradient_difference_from_default"] = _relative(grad, default_grad) if grad is not None else None
+            row["cpu_ms_each"], row["ms_each"] = times[(change, label), v, "cpu_ms"], times[(change, label), v, "ms"]
+            rows.append(row)
+    return rows
+
+
+def plot_precision_fixes(rows: list[dict], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    changes = list(FIXES)
+    fig, axes = plt.subplots(2, len(changes), figsize=(6.5 * len(changes), 8))
+    for column, change in enumerate(changes):
+        mine = [r for r in rows if r["change"] == change]
+        labels = list(dict.fromkeys(r["case"] for r in mine))
+        speed, error = axes[0, column], axes[1, column]
+        timed = [r for r in mine if r["variant"] == "before" and r["cpu_ms"] is not None]
+        for j, r in enumerate(timed):
+            low, high = r["cpu_ms_ratio_min_max"]
+            ratio = r["cpu_ms_ratio_to_default"]
+            speed.bar(j, ratio, 0.6, color="C1", yerr=[[ratio - low], [high - ratio]], capsize=3)
+            speed.annotate(f"×{ratio:.2f}", (j, high), ha="center", va="bottom", fontsize=7)
+        speed.axhline(1.0, color="0.4", lw=0.8)
+        speed.set_xticks(range(len(timed)), [r["case"].replace(": ", ":\n", 1) for r in timed], fontsize=6)
+        speed.set_ylabel("CPU time before / default (median, bar: rounds' range)")
+        speed.set_title(change, fontsize=9)
+        width = 0.4
+        for i, v in enumerate(VARIANTS_OF_A_FIX):
+            vals = [next((r["max_error"] for r in mine if r["case"] == c and r["variant"] == v), None) for c in labels]
+            x = [j + (i - 0.5) * width for j in range(len(labels))]
+            shown = [max(e, 1e-12) if e is not None else 1e-12 for e in vals]
+            error.bar(x, shown, width, color=f"C{0 if v == 'default' else 1}", label=v)
+            for xi, e, s in zip(x, vals, shown):
+                error.annotate("–" if e is None else f"{e:.1g}", (xi, s), ha="center", va="bottom", fontsize=6)
+        error.set_yscale("log")
+        error.set_ylim(1e-12, 1e7)
+        error.set_xticks(range(len(labels)), [c.replace(": ", ":\n", 1) for c in labels], fontsize=6)
+        error.set_ylabel("max error against the reference (relative)")
+        error.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def record_precision_fixes(repeats: int, out: Path) -> list[dict]:
+    """:func:`measure_precision_fixes`, one thread; saved to ``out`` with a plot."""
+    torch.set_num_threads(1)
+    load_before = os.getloadavg()[0]
+    rows = measure_precision_fixes(repeats)
+    record = {"description": "three float-precision changes of 2026-12-07 against their predecessors (far rays moved "
+                             "to the box, the correlation regulariser as ½‖â − b̂‖², the tight box ending at bbox_max): "
+                             "time in alternating pairs and accuracy; see bench/render_passes.py --precision-fixes",
+              "machine": f"{os.cpu_count()} CPU cores, torch {torch.__version__}", "threads": torch.get_num_threads(),
+              "load_average_before_after": [load_before, os.getloadavg()[0]], "repeats": repeats,
+              "references": {"far rays": "the same float32 lines' render from 4 units out (today's code)",
+                             "regulariser": "1 − Pearson's r in float64 of the same values, and its gradient",
+                             "tight box": "the render without empty-space skipping (opacity, and the gradient)"},
+              "runs": rows}
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(record, indent=1))
+    plot_precision_fixes(rows, out.with_suffix(".png"))
+    print(f"wrote {out} and {out.with_suffix('.png')}")
+    return rows
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--out", type=Path, default=None,
-                        help="default: results/render_passes.json, with --transmittance render_passes_transmittance.json")
+                        help="default: results/render_passes.json, with --transmittance render_passes_transmittance.json, "
+                             "with --precision-fixes render_passes_precision_fixes.json")
     parser.add_argument("--transmittance", action="store_true",
                         help="the packed transmittance against the prefix sum as it was: time and accuracy")
+    parser.add_argument("--precision-fixes", action="store_true",
+                        help="far rays moved to the box, the correlation regulariser as ½‖â − b̂‖² and the tight box "
+                             "at bbox_max, each against its predecessor: time and accuracy")
     args = parser.parse_args(argv)
     torch.manual_seed(0)
+    if args.precision_fixes:
+        rows = record_precision_fixes(args.repeats, args.out or HERE / "results" / "render_passes_precision_fixes.json")
+        for r in rows:
+            timing = "" if r["cpu_ms"] is None else (
+                f"{r['cpu_ms']:8.1f} CPU ms (x{r['cpu_ms_ratio_to_default']:.2f}, rounds "
+                f"x{r['cpu_ms_ratio_min_max'][0]:.2f}-{r['cpu_ms_ratio_min_max'][1]:.2f}; wall "
+                f"x{r['ms_ratio_to_default']:.2f})")
+            errors = "  ".join(f"{k} {r[k]:.1e}" for k in ("max_error", "gradient_error", "max_difference_from_default",
+                                                           "gradient_difference_from_default") if r[k] is not None)
+            print(f"{r['case']:52s} {r['variant']:7s} {timing:60s} {errors}")
+        return 0
     if args.transmittance:
         rows = record_transmittance(args.repeats, args.out or HERE / "results" / "render_passes_transmittance.json")
         for r in rows.values():
