@@ -2652,11 +2652,13 @@ def test_the_service_commands_talk_to_the_service_without_loading_torch(api, tmp
     assert "torch" not in imported and "voxe_core.data" not in imported and "voxe_client" in imported
     said = {}
     for argv in (["status", job_id], ["cancel", job_id], ["wait", job_id, "--quiet"],
-                 ["download", job_id, "--out", str(tmp_path / "artifacts")], ["sweep", "--scene", f"{scene_id}=plane"]):
+                 ["download", job_id, "--out", str(tmp_path / "artifacts")], ["sweep", "--scene", f"{scene_id}=plane"],
+                 ["webhook-secret"]):
         result, imported = _voxe_in_a_process(*argv, *service)
         said[argv[0]] = result.returncode, "torch" in imported, result.stdout
     assert {command: said[command][:2] for command in said} == {
-        "status": (0, False), "cancel": (0, False), "wait": (1, False), "download": (0, False), "sweep": (0, False)}
+        "status": (0, False), "cancel": (0, False), "wait": (1, False), "download": (0, False), "sweep": (0, False),
+        "webhook-secret": (0, False)}
     assert json.loads(said["status"][2])["id"] == job_id and json.loads(said["wait"][2])["state"] == "canceled"
     refused, imported = _voxe_in_a_process("status", job_id, "--api", "http://127.0.0.1:9")
     assert (refused.returncode, "torch" in imported) == (3, False)
@@ -2921,3 +2923,29 @@ def test_an_api_key_no_header_carries_is_refused_without_saying_it_and_one_not_a
         assert err.startswith("voxe status: error: the API key cannot be sent") and "secret" not in err
     assert main(["status", "j1", "--api", url, "--api-key", "voxe_clé"]) == 2  # sent: the service's answer
     assert "voxe status: error: GET /v1/jobs/j1: HTTP " in capsys.readouterr().err
+
+
+def test_the_webhook_secret_is_read_and_rotated_through_the_client_and_voxe(api, capsys):
+    """The client had no call for ``GET /v1/webhooks/secret`` nor ``POST /v1/webhooks/secret/rotate`` (nor ``voxe``
+    a command): a key holder verifying its deliveries had to curl the API. Read twice it is the same ``whsec_``
+    secret; rotated, the new one is what is read from then on; an answer with no secret is a ServiceError quoting it."""
+    from service_helpers import answering
+    from voxe_core.cli import main
+
+    url, _ = api
+    with Client(url) as client:
+        secret = client.webhook_secret()
+        assert secret.startswith("whsec_") and client.webhook_secret() == secret
+        rotated = client.rotate_webhook_secret()
+        assert rotated.startswith("whsec_") and rotated != secret and client.webhook_secret() == rotated
+    assert main(["webhook-secret", "--api", url]) == 0
+    assert capsys.readouterr().out == f"{rotated}\n"
+    assert main(["webhook-secret", "--rotate", "--api", url]) == 0
+    newest = capsys.readouterr().out.strip()
+    assert newest.startswith("whsec_") and newest != rotated
+    with Client(url) as client:
+        assert client.webhook_secret() == newest
+    with answering(b'{"detail": "moved"}') as elsewhere:
+        assert main(["webhook-secret", "--api", elsewhere]) == 2
+    assert capsys.readouterr().err == (f"voxe webhook-secret: error: GET /v1/webhooks/secret: {elsewhere} answered "
+                                       "{'detail': 'moved'}, not a webhook secret\n")

@@ -730,6 +730,27 @@ class Client:
         """``GET /v1/sweeps/{id}``: the jobs' states and the summary table."""
         return self._record("sweep", "GET", f"/v1/sweeps/{_segment(sweep_id)}")
 
+    # ------------------------------------------------------------------ webhooks
+    def webhook_secret(self) -> str:
+        """``GET /v1/webhooks/secret``: this key's webhook signing secret (``whsec_…``, made on first use), which
+        verifies its jobs' deliveries' ``webhook-signature`` (Standard Webhooks)."""
+        return self._secret("GET", "/v1/webhooks/secret")
+
+    def rotate_webhook_secret(self) -> str:
+        """``POST /v1/webhooks/secret/rotate``: a new signing secret for this key (the old one leaked), which signs
+        every delivery attempt from now on, a retry of an earlier one included. Not sent again: a rotation whose
+        answer is lost may have replaced the secret (:meth:`webhook_secret` reads the one in force)."""
+        return self._secret("POST", "/v1/webhooks/secret/rotate")
+
+    def _secret(self, method: str, path: str) -> str:
+        """The ``secret`` that ``method path`` answers; an answer with none (a proxy's JSON) is a ServiceError
+        quoting it, as :meth:`_record`'s."""
+        answer = self.request(method, path)
+        if not isinstance(answer, dict) or not isinstance(answer.get("secret"), str):
+            raise ServiceError(f"{method} {path}: {self.base_url} answered {reprlib.repr(answer)}, not a webhook "
+                               "secret")
+        return answer["secret"]
+
 
 class MissingCompanionWarning(UserWarning):
     """A file a mesh names (an OBJ's .mtl, a texture) that is not beside it: the upload goes without it."""

@@ -1,5 +1,6 @@
 """The commands that talk to the job service over its HTTP API: ``voxe submit | status | wait | download |
-cancel`` for one job, ``voxe sweep`` for the paper's protocol (SPEC §4).
+cancel`` for one job, ``voxe sweep`` for the paper's protocol (SPEC §4), ``voxe webhook-secret [--rotate]`` for the
+key's webhook signing secret.
 
 They import ``voxe_client`` (the HTTP client) where they run, so the library itself holds no web code. A request
 the service refuses (4xx) exits 2, as any bad input; a service that failed (5xx) or was not reached exits 3.
@@ -123,6 +124,14 @@ def add_parsers(commands, common) -> None:
                          "the wait is interrupted, the sweep not ended), without it the sweep as queued")
     _add_idempotency_argument(sw, "the sweep the first run made")
     sw.set_defaults(run=cmd_sweep)
+
+    secret = commands.add_parser("webhook-secret", parents=[common, service],
+                                 help="print the key's webhook signing secret (whsec_...: it verifies the "
+                                      "deliveries to --webhook-url)")
+    secret.add_argument("--rotate", action="store_true",
+                        help="replace it first (a leaked one) and print the new one: every delivery attempt from now "
+                             "on, a retry of an earlier one included, is signed with it")
+    secret.set_defaults(run=cmd_webhook_secret)
 
 
 def _add_reconnect_argument(parser: argparse.ArgumentParser) -> None:
@@ -335,6 +344,19 @@ def cmd_download(args) -> int:
               f"{args.job_id}`, then download again for all of them", file=sys.stderr)
     elif not listed:
         print(f"voxe download: note: job {args.job_id} {state} with no artifacts: nothing downloaded", file=sys.stderr)
+    return 0
+
+
+def cmd_webhook_secret(args) -> int:
+    """``voxe webhook-secret [--rotate]``: the secret alone on stdout, for a receiver's configuration."""
+    from voxe_client import ServiceError
+
+    with _client(args) as client:
+        try:
+            secret = client.rotate_webhook_secret() if args.rotate else client.webhook_secret()
+        except ServiceError as exc:
+            return _service_error(args.command, exc)
+    print(secret)
     return 0
 
 
