@@ -2440,6 +2440,41 @@ def test_submit_texture_colours_an_obj_without_a_library(api, tmp_path, capsys):
     assert "texture notes.txt: send it as one of .png, .jpg, .jpeg" in capsys.readouterr().err
 
 
+def test_a_meshs_up_axis_and_shading_are_sent_by_the_client_and_voxe_submit(api, tmp_path, capsys):
+    """``POST /v1/scenes`` takes ``mesh_up_axis`` and ``mesh_shading``, but neither ``upload_scene`` nor ``voxe submit
+    --upload`` could send them: a CAD or scanner mesh (z up) was ingested lying on its side, and a coloured one could
+    not be baked. They go as the form fields (the stored mesh's options say them), none where not given (the
+    service's defaults); --up and --shading without --upload are refused."""
+    import zipfile
+
+    from voxe_core.cli import main
+    from voxe_service.datasets import MESH_OPTIONS
+    from voxe_service.db import session_scope
+    from voxe_service.models import Job, Scene
+
+    url, storage = api
+    (tmp_path / "plane.obj").write_text(PLANE_OBJ)
+
+    def options(scene_id: str) -> dict:
+        with session_scope() as session:
+            key = session.get(Scene, scene_id).storage_key
+        with zipfile.ZipFile(storage / key) as archive:
+            return json.loads(archive.read(f"mesh/{MESH_OPTIONS}"))
+
+    assert main(["submit", "a plane of gold", "--upload", str(tmp_path / "plane.obj"), "--up", "z", "--shading",
+                 "baked", "--api", url]) == 0
+    with session_scope() as session:
+        scene_id = session.get(Job, capsys.readouterr().out.strip()).scene_id
+    assert {k: options(scene_id)[k] for k in ("up_axis", "shading")} == {"up_axis": "z", "shading": "baked"}
+    with Client(url) as client:
+        default = client.upload_scene(tmp_path / "plane.obj")["id"]
+        assert {k: options(default)[k] for k in ("up_axis", "shading")} == {"up_axis": "y", "shading": "auto"}
+        assert options(client.upload_scene(tmp_path / "plane.obj", mesh_up_axis="x")["id"])["up_axis"] == "x"
+    for option in (["--up", "z"], ["--shading", "none"]):
+        assert main(["submit", "x", "--scene", scene_id, *option, "--api", url]) == 2
+        assert f"{option[0]} goes with --upload (an OBJ or a PLY)" in capsys.readouterr().err
+
+
 def test_an_obj_naming_missing_files_goes_without_them_and_one_naming_too_many_textures_is_refused(api, tmp_path,
                                                                                                   capsys):
     """Files an OBJ names but that are not beside it are said (the OBJ goes without them, as before they were looked

@@ -302,13 +302,16 @@ class Client:
 
     # ------------------------------------------------------------------ scenes and jobs
     def upload_scene(self, path: str | os.PathLike, name: str | None = None,
-                     texture: str | os.PathLike | None = None, idempotency_key: str | None = None) -> dict:
+                     texture: str | os.PathLike | None = None, idempotency_key: str | None = None,
+                     mesh_shading: str | None = None, mesh_up_axis: str | None = None) -> dict:
         """``POST /v1/scenes``: a dataset zip, or one mesh file (.obj / .ply), sent under its own file name (the
         service reads a mesh's kind from it), with ``name`` the scene's display name; the scene, ``processing``.
 
         A mesh goes with the files that colour it: an OBJ's .mtl and the texture that names
         (:func:`obj_upload_files`), a PLY's texture its header names (:func:`ply_upload_files`); or ``texture``, an
-        image that colours it at its UVs instead (as ``voxe mesh-to-grid --texture``).
+        image that colours it at its UVs instead (as ``voxe mesh-to-grid --texture``). ``mesh_shading`` (auto, baked,
+        none) and ``mesh_up_axis`` (x, y, z: z for CAD and most scanners) are the upload's form fields of those
+        names (the service's defaults where None: auto, y), as ``voxe mesh-to-grid --shading / --up``.
 
         ``idempotency_key`` (as :meth:`create_job`'s) makes a repeated call answer with the scene the first made."""
         path = Path(path)
@@ -326,13 +329,16 @@ class Client:
                 raise ValueError(f"cannot upload {shown}: its name is not UTF-8, which the upload sends names as: "
                                  "rename it") from None
         field = "archive" if path.suffix.lower() == ".zip" else "files"
+        form = {"name": name} if name else {}
+        form.update((field_name, value) for field_name, value in (("mesh_shading", mesh_shading),
+                                                                  ("mesh_up_axis", mesh_up_axis)) if value is not None)
         with ExitStack() as stack:
             opened = [(each, stack.enter_context(open(each, "rb"))) for each in paths]
             sizes = [os.fstat(file.fileno()).st_size for _, file in opened]
             try:
                 return self._record("scene", "POST", "/v1/scenes", files=[(field, (each.name, file))
                                                                           for each, file in opened],
-                                    data={"name": name} if name else None,
+                                    data=form or None,
                                     idempotency_key=_submission_key(idempotency_key))
             except ServiceError:
                 raise

@@ -83,6 +83,12 @@ def add_parsers(commands, common) -> None:
     sub.add_argument("--texture", type=Path, default=None, metavar="IMAGE",
                      help="with --upload OBJ or PLY: the image that colours it at its UVs, instead of the one it "
                           "names (as mesh-to-grid --texture)")
+    sub.add_argument("--up", choices=("x", "y", "z"), default=None,
+                     help="with --upload OBJ or PLY: the mesh file's up axis (default y, as OBJ and glTF exports; z "
+                          "for CAD and most scanners), as mesh-to-grid --up")
+    sub.add_argument("--shading", choices=("auto", "baked", "none"), default=None,
+                     help="with --upload OBJ or PLY: bake a fixed light + ambient occlusion into the colour (default "
+                          "auto: for meshes without colour), as mesh-to-grid --shading")
     sub.add_argument("--mode", choices=EDIT_MODES, default=EDIT_MODE)
     sub.add_argument("--edit-word", action="append", default=[], metavar="WORD", help="local edits (repeat)")
     sub.add_argument("--params", type=_json_object, default=None, metavar="JSON", help="job params")
@@ -240,8 +246,11 @@ def cmd_submit(args) -> int:
     from voxe_client import ServiceError
     from voxe_client.client import MissingCompanionWarning
 
-    if args.texture is not None and args.upload is None:
-        raise ValueError("--texture goes with --upload (an OBJ or a PLY); an uploaded scene keeps its colours")
+    if args.upload is None and (given := [option for option, value in (("--texture", args.texture),
+                                                                       ("--up", args.up), ("--shading", args.shading))
+                                          if value is not None]):
+        raise ValueError(f"{given[0]} goes with --upload (an OBJ or a PLY); an uploaded scene keeps its colours and "
+                         "its up axis")
     if args.reconnect_for is not None and not args.wait:  # (it had been taken and ignored, as sweep's --poll was)
         raise ValueError("--reconnect-for sets how long --wait rides out a lost event stream: pass --wait too")
     with _client(args) as client:
@@ -251,7 +260,8 @@ def cmd_submit(args) -> int:
                 with warnings.catch_warnings(record=True) as left_out:  # a mesh's .mtl or texture not found
                     warnings.simplefilter("always", MissingCompanionWarning)
                     scene_id = client.upload_scene(args.upload, texture=args.texture,
-                                                   idempotency_key=args.idempotency_key)["id"]
+                                                   idempotency_key=args.idempotency_key, mesh_shading=args.shading,
+                                                   mesh_up_axis=args.up)["id"]
                 for warning in left_out:
                     if issubclass(warning.category, MissingCompanionWarning):
                         print(f"voxe submit: warning: {warning.message}", file=sys.stderr)
