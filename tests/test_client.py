@@ -2852,6 +2852,33 @@ def test_an_empty_webhook_url_is_sent_and_refused_not_dropped(api, tmp_path, cap
         assert client.request("GET", "/v1/jobs")["items"] == []
 
 
+def test_voxe_submit_sends_the_webhook_events_asked_for(api, tmp_path, monkeypatch, capsys):
+    """``POST /v1/jobs`` takes ``webhook_events`` (which events go to the webhook_url), but ``voxe submit`` had no
+    option for them: a job submitted with voxe was told only its end. --webhook-event (repeated) sends them; the
+    service's refusals name the field (an event it does not send, one without --webhook-url)."""
+    from service_helpers import reset_service_caches
+
+    from voxe_core.cli import main
+
+    url, _ = api
+    monkeypatch.setenv("VOXE_WEBHOOK_ALLOW_NETWORKS", "127.0.0.0/8")
+    reset_service_caches()
+    (tmp_path / "plane.obj").write_text(PLANE_OBJ)
+    with Client(url) as client:
+        scene_id = client.upload_scene(tmp_path / "plane.obj")["id"]
+        submit = ["submit", "a plane", "--scene", scene_id, "--api", url, "--quiet"]
+        hook = ["--webhook-url", "http://127.0.0.1:9/hook"]
+        assert main([*submit, *hook, "--webhook-event", "warning", "--webhook-event", "succeeded"]) == 0
+        job = client.get_job(capsys.readouterr().out.strip())
+        assert (job["webhook_url"], job["webhook_events"]) == ("http://127.0.0.1:9/hook", ["warning", "succeeded"])
+        assert main([*submit, *hook]) == 0
+        assert client.get_job(capsys.readouterr().out.strip())["webhook_events"] is None
+        assert main([*submit, *hook, "--webhook-event", "done"]) == 2
+        assert "HTTP 422: body.webhook_events.0: Input should be 'stage_started'" in capsys.readouterr().err
+        assert main([*submit, "--webhook-event", "warning"]) == 2
+        assert "webhook_events needs a webhook_url to send them to" in capsys.readouterr().err
+
+
 @pytest.mark.parametrize("job_status, delete_status, said, exit_status", [
     (429, 204, "the scene s1 this command uploaded is deleted", 2),
     (429, 409, "the scene s1 this command uploaded stays, its deletion failed (DELETE /v1/scenes/s1: HTTP 409: busy)",

@@ -92,7 +92,11 @@ def add_parsers(commands, common) -> None:
     sub.add_argument("--mode", choices=EDIT_MODES, default=EDIT_MODE)
     sub.add_argument("--edit-word", action="append", default=[], metavar="WORD", help="local edits (repeat)")
     sub.add_argument("--params", type=_json_object, default=None, metavar="JSON", help="job params")
-    sub.add_argument("--webhook-url", default=None, metavar="URL", help="POST the job's events here, signed")
+    sub.add_argument("--webhook-url", default=None, metavar="URL",
+                     help="POST the job's events here, signed (the secret: voxe webhook-secret)")
+    sub.add_argument("--webhook-event", action="append", default=None, metavar="EVENT",
+                     help="with --webhook-url: a job event to send there (repeat; default succeeded, failed and "
+                          "canceled; the others: stage_started, stage_completed, warning, artifact, preview)")
     sub.add_argument("--wait", action="store_true", help="follow the job's events until it ends")
     _add_reconnect_argument(sub)
     _add_idempotency_argument(sub, "the job (with --upload, also the scene) the first run made")
@@ -269,7 +273,8 @@ def cmd_submit(args) -> int:
                         warnings.showwarning(warning.message, warning.category, warning.filename, warning.lineno)
                 print(f"uploaded {args.upload}: scene {scene_id}", file=sys.stderr)
             fields = {"mode": args.mode, "edit_words": args.edit_word}
-            fields.update({k: v for k, v in (("params", args.params), ("webhook_url", args.webhook_url))
+            fields.update({k: v for k, v in (("params", args.params), ("webhook_url", args.webhook_url),
+                                             ("webhook_events", args.webhook_event))
                            if v is not None})  # (an empty --webhook-url "$UNSET" had been dropped, the job made)
             try:
                 job = client.create_job(scene_id, args.prompt, idempotency_key=args.idempotency_key, **fields)
