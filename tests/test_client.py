@@ -3011,3 +3011,37 @@ def test_the_webhook_secret_is_read_and_rotated_through_the_client_and_voxe(api,
         assert main(["webhook-secret", "--api", elsewhere]) == 2
     assert capsys.readouterr().err == (f"voxe webhook-secret: error: GET /v1/webhooks/secret: {elsewhere} answered "
                                        "{'detail': 'moved'}, not a webhook secret\n")
+
+
+def test_scenes_are_read_and_listed_page_by_page_through_the_client(api, tmp_path):
+    """The client had no call for ``GET /v1/scenes/{id}``, ``GET /v1/scenes`` nor ``GET /v1/scenes/{id}/reconstructions``:
+    an upload's caller could not see it become ready (or why it failed) but through ``request``. A scene is read
+    processing, then ready; the listing pages by its cursor, newest first; refusals are the service's."""
+    from service_helpers import answering, ingest
+
+    url, _ = api
+    (tmp_path / "plane.obj").write_text(PLANE_OBJ)
+    with Client(url) as client:
+        first = client.upload_scene(tmp_path / "plane.obj", name="first")["id"]
+        second = client.upload_scene(tmp_path / "plane.obj", name="second")["id"]
+        assert client.get_scene(first)["state"] == "processing"
+        assert ingest(first)["state"] == "ready"
+        assert (client.get_scene(first)["state"], client.get_scene(first)["name"]) == ("ready", "first")
+        page = client.list_scenes(limit=1)
+        assert ([scene["id"] for scene in page["items"]], page["total"]) == ([second], 2)
+        last = client.list_scenes(limit=1, cursor=page["next_cursor"])
+        assert [scene["id"] for scene in last["items"]] == [first] and last["next_cursor"] is None
+        assert [scene["id"] for scene in client.list_scenes(offset=1)["items"]] == [first]
+        assert client.scene_reconstructions(first) == []
+        with pytest.raises(ServiceError, match=r"^GET /v1/scenes: HTTP 422: query.limit: ") as refused:
+            client.list_scenes(limit=0)
+        assert refused.value.status == 422
+        with pytest.raises(ServiceError, match="^GET /v1/scenes/nope/reconstructions: HTTP 404: "):
+            client.scene_reconstructions("nope")
+    with answering(b'{"detail": "moved"}') as elsewhere, Client(elsewhere) as client:
+        with pytest.raises(ServiceError, match=r"answered \{'detail': 'moved'\}, not a page of a listing"):
+            client.list_scenes()
+        with pytest.raises(ServiceError, match=r"answered \{'detail': 'moved'\}, not a list of reconstructions"):
+            client.scene_reconstructions("s1")
+        with pytest.raises(ServiceError, match=r"answered \{'detail': 'moved'\}, not a scene with an id"):
+            client.get_scene("s1")

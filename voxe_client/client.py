@@ -354,6 +354,20 @@ class Client:
         """``DELETE /v1/scenes/{id}``: the scene with its finished jobs and their results (409 while one runs)."""
         self.request("DELETE", f"/v1/scenes/{_segment(scene_id)}")
 
+    def get_scene(self, scene_id: str) -> dict:
+        """``GET /v1/scenes/{id}``: the scene, its ``state`` processing, ready, or failed (its ``error`` says why)."""
+        return self._record("scene", "GET", f"/v1/scenes/{_segment(scene_id)}")
+
+    def list_scenes(self, limit: int | None = None, offset: int | None = None, cursor: str | None = None) -> dict:
+        """``GET /v1/scenes``: a page of this key's scenes, newest first, ``{items, total, limit, offset,
+        next_cursor}``; the page after it is ``cursor=page["next_cursor"]`` (None on the last page)."""
+        return self._page("/v1/scenes", limit=limit, offset=offset, cursor=cursor)
+
+    def scene_reconstructions(self, scene_id: str) -> list[dict]:
+        """``GET /v1/scenes/{id}/reconstructions``: the scene's cached reconstructions that its jobs use, each with its
+        ``state``, ``params`` and how often it was fitted (``run_count``)."""
+        return self._listed("reconstructions", f"/v1/scenes/{_segment(scene_id)}/reconstructions")
+
     def create_job(self, scene_id: str, prompt: str, idempotency_key: str | None = None, **fields) -> dict:
         """``POST /v1/jobs``: ``fields`` are the body's other members (mode, edit_words, params, webhook_url, ...).
 
@@ -380,6 +394,23 @@ class Client:
             raise ServiceError(f"{method} {path}: {self.base_url} answered {reprlib.repr(record)}, not a {kind} with "
                                "an id and a state")
         return record
+
+    def _page(self, path: str, **query) -> dict:
+        """The page of the listing at ``path`` that ``query`` asks for (its members that are None left out: the
+        service's defaults); an answer that is no page, an object with a list of ``items``, is a ServiceError quoting
+        it."""
+        page = self.request("GET", path, params={name: value for name, value in query.items() if value is not None})
+        if not isinstance(page, dict) or not isinstance(page.get("items"), list):
+            raise ServiceError(f"GET {path}: {self.base_url} answered {reprlib.repr(page)}, not a page of a listing "
+                               "(an object with its items)")
+        return page
+
+    def _listed(self, what: str, path: str) -> list[dict]:
+        """The list of ``what`` (objects) that ``GET path`` answers; another answer is a ServiceError quoting it."""
+        listed = self.request("GET", path)
+        if not isinstance(listed, list) or not all(isinstance(each, dict) for each in listed):
+            raise ServiceError(f"GET {path}: {self.base_url} answered {reprlib.repr(listed)}, not a list of {what}")
+        return listed
 
     def events(self, job_id: str, last_event_id: int | None = None, reconnect_for: float | None = None,
                on_reconnect: Callable[[str], None] | None = None, timeout: float | None = None) -> Iterator[dict]:
