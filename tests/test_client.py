@@ -3045,3 +3045,45 @@ def test_scenes_are_read_and_listed_page_by_page_through_the_client(api, tmp_pat
             client.scene_reconstructions("s1")
         with pytest.raises(ServiceError, match=r"answered \{'detail': 'moved'\}, not a scene with an id"):
             client.get_scene("s1")
+
+
+def test_jobs_are_listed_and_their_timeline_and_webhook_deliveries_read_through_the_client(api, tmp_path,
+                                                                                         monkeypatch):
+    """The client had no call for ``GET /v1/jobs``, the JSON timeline of ``GET /v1/jobs/{id}/events`` (only its live
+    stream) nor ``GET /v1/jobs/{id}/webhooks``: a caller could not find its jobs, read what a finished one went
+    through, nor see whether its webhook was delivered. A job canceled has its ``canceled`` event in its timeline and
+    a delivery of it; the listing filters by state and scene and pages by its cursor."""
+    from service_helpers import answering, reset_service_caches
+
+    url, _ = api
+    monkeypatch.setenv("VOXE_WEBHOOK_ALLOW_NETWORKS", "127.0.0.0/8")
+    reset_service_caches()
+    (tmp_path / "plane.obj").write_text(PLANE_OBJ)
+    with Client(url) as client:
+        scene_id = client.upload_scene(tmp_path / "plane.obj")["id"]
+        other_scene = client.upload_scene(tmp_path / "plane.obj")["id"]
+        hooked = client.create_job(scene_id, "a plane of gold", webhook_url="http://127.0.0.1:9/hook")["id"]
+        queued = client.create_job(scene_id, "a plane of tin")["id"]
+        elsewhere = client.create_job(other_scene, "a plane of wood")["id"]
+        client.cancel_job(hooked)
+        assert [event["kind"] for event in client.job_timeline(hooked)] == ["canceled"]
+        assert [(hook["event_type"], hook["url"]) for hook in client.job_webhooks(hooked)] == \
+            [("job.canceled", "http://127.0.0.1:9/hook")]
+        assert client.job_webhooks(queued) == [] and client.job_timeline(queued) == []
+        assert [job["id"] for job in client.list_jobs(state="canceled")["items"]] == [hooked]
+        assert [job["id"] for job in client.list_jobs(scene_id=scene_id)["items"]] == [queued, hooked]
+        page = client.list_jobs(limit=2)
+        assert [job["id"] for job in page["items"]] == [elsewhere, queued] and page["total"] == 3
+        assert [job["id"] for job in client.list_jobs(cursor=page["next_cursor"])["items"]] == [hooked]
+        with pytest.raises(ServiceError, match=r"^GET /v1/jobs: HTTP 422: query.state: ") as refused:
+            client.list_jobs(state="done")
+        assert refused.value.status == 422
+        with pytest.raises(ServiceError, match="^GET /v1/jobs/nope/events: HTTP 404: "):
+            client.job_timeline("nope")
+    with answering(b'{"detail": "moved"}') as elsewhere_url, Client(elsewhere_url) as client:
+        with pytest.raises(ServiceError, match=r"answered \{'detail': 'moved'\}, not a page of a listing"):
+            client.list_jobs()
+        with pytest.raises(ServiceError, match=r"answered \{'detail': 'moved'\}, not a list of events"):
+            client.job_timeline("j1")
+        with pytest.raises(ServiceError, match=r"answered \{'detail': 'moved'\}, not a list of webhook deliveries"):
+            client.job_webhooks("j1")

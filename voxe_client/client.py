@@ -383,6 +383,22 @@ class Client:
     def cancel_job(self, job_id: str) -> dict:
         return self._record("job", "POST", f"/v1/jobs/{_segment(job_id)}/cancel")
 
+    def list_jobs(self, state: str | None = None, scene_id: str | None = None, limit: int | None = None,
+                  offset: int | None = None, cursor: str | None = None) -> dict:
+        """``GET /v1/jobs``: a page of this key's jobs, newest first, those in ``state`` or of ``scene_id`` where
+        given (as :meth:`list_scenes`' page)."""
+        return self._page("/v1/jobs", state=state, scene_id=scene_id, limit=limit, offset=offset, cursor=cursor)
+
+    def job_timeline(self, job_id: str) -> list[dict]:
+        """``GET /v1/jobs/{id}/events`` as JSON: the job's timeline so far, each event ``{id, kind, stage, detail,
+        ...}`` (:meth:`events` follows it live)."""
+        return self._listed("events", f"/v1/jobs/{_segment(job_id)}/events")
+
+    def job_webhooks(self, job_id: str) -> list[dict]:
+        """``GET /v1/jobs/{id}/webhooks``: the job's webhook deliveries, each with its ``state`` (pending, delivered,
+        failed), attempts and the receiver's last status and error."""
+        return self._listed("webhook deliveries", f"/v1/jobs/{_segment(job_id)}/webhooks")
+
     def _record(self, kind: str, method: str, path: str, body: dict | None = None, **kwargs) -> dict:
         """The record of a ``kind`` (job, scene, sweep) that ``method path`` answers (``body`` and ``kwargs`` to
         :meth:`request`); an answer that is no object with a string ``id`` and ``state``, as each of them has (a
