@@ -3087,3 +3087,31 @@ def test_jobs_are_listed_and_their_timeline_and_webhook_deliveries_read_through_
             client.job_timeline("j1")
         with pytest.raises(ServiceError, match=r"answered \{'detail': 'moved'\}, not a list of webhook deliveries"):
             client.job_webhooks("j1")
+
+
+def test_an_evaluation_is_created_through_the_client_once_per_idempotency_key(api, tmp_path):
+    """The client had no call for ``POST /v1/evaluations``: scoring finished edits (SPEC §4) outside a sweep took the
+    raw ``request``, with no Idempotency-Key (a lost answer, sent again, made a second one). ``create_evaluation``
+    queues it, a repeated call with its key answers the one the first made, and the service's refusals (an edit not
+    succeeded, no such job) are its errors."""
+    from voxe_service.db import session_scope
+    from voxe_service.models import SUCCEEDED, Job
+
+    url, _ = api
+    (tmp_path / "plane.obj").write_text(PLANE_OBJ)
+    with Client(url) as client:
+        scene_id = client.upload_scene(tmp_path / "plane.obj")["id"]
+        edit = client.create_job(scene_id, "a plane of gold")["id"]
+        with pytest.raises(ServiceError, match=f"^POST /v1/evaluations: HTTP 409: job '{edit}' is queued: only "
+                                               "succeeded edit jobs can be evaluated") as refused:
+            client.create_evaluation([edit], "plane")
+        assert refused.value.status == 409
+        with session_scope() as session:
+            session.get(Job, edit).state = SUCCEEDED
+        made = [client.create_evaluation([edit], "plane", {"views": 4, "size": 32}, idempotency_key="eval-1")
+                for _ in range(2)]
+        assert made[0]["id"] == made[1]["id"] and (made[0]["mode"], made[0]["state"]) == ("evaluate", "queued")
+        assert made[0]["params"]["views"] == 4 and made[0]["params"]["object"] == "plane"
+        assert [job["id"] for job in client.list_jobs(limit=200)["items"]] == [made[0]["id"], edit]
+        with pytest.raises(ServiceError, match="^POST /v1/evaluations: HTTP 404: "):
+            client.create_evaluation(["nope"], "plane")

@@ -174,7 +174,7 @@ class Client:
     (the service's database or broker briefly unavailable, a rate or quota limit) is sent again after that wait (seconds
     or an HTTP-date; one asking more than :data:`MAX_RETRY_WAIT_S` is the error at once, naming it), at most ``retries``
     times, and so is one whose connection dropped before its answer (:data:`DROPPED_CONNECTIONS`), after a doubling
-    pause. A submission (an upload, a job, a sweep) goes with an ``Idempotency-Key``, one per call, so it too is sent
+    pause. A submission (an upload, a job, an evaluation, a sweep) goes with an ``Idempotency-Key``, one per call, so it too is sent
     again, with the same key, when its answer is lost (a connection refused or dropped, a 502 / 503 / 504), the service
     is still answering its first sending (409 with ``Retry-After``) or asks it to wait (429 with ``Retry-After``, over a
     quota that waiting clears, where it asks no more than :data:`MAX_RETRY_WAIT_S`: the job quota's is the service's
@@ -767,7 +767,19 @@ class Client:
                                exc.status, exc.detail) from None
         return kept
 
-    # ------------------------------------------------------------------ sweeps (SPEC §4)
+    # ------------------------------------------------------------------ evaluations and sweeps (SPEC §4)
+    def create_evaluation(self, job_ids: list[str], object_name: str, params: dict | None = None,
+                          idempotency_key: str | None = None) -> dict:
+        """``POST /v1/evaluations``: a job (mode ``evaluate``) scoring succeeded edit jobs of one scene, ``object_name``
+        what the object is called (the body's ``object``: the source text is "a render of a <object>"), ``params``
+        its views, elevation, size, fid_input, save_renders; its result and ``evaluation.json`` / ``.md`` artifacts
+        hold the metrics. ``idempotency_key`` as :meth:`create_job`'s."""
+        body: dict = {"job_ids": job_ids, "object": object_name}
+        if params is not None:
+            body["params"] = params
+        return self._record("evaluation", "POST", "/v1/evaluations", body,
+                            idempotency_key=_submission_key(idempotency_key))
+
     def create_sweep(self, scenes: list[dict], params: dict | None = None, evaluation: dict | None = None,
                      idempotency_key: str | None = None) -> dict:
         """``POST /v1/sweeps``: every scene ({scene_id, object}) × the paper's six prompts, each edit then evaluated;
