@@ -279,7 +279,8 @@ def test_ctrl_c_during_a_waited_sweeps_pause_stops_waiting_at_once(monkeypatch, 
     started = time.monotonic()
     assert main(["sweep", "--scene", "s1=mic", "--wait", "--poll", "20"]) == code
     assert time.monotonic() - started < 10 and sweeps.polls == 0
-    assert capsys.readouterr().err.endswith("voxe sweep: stopped waiting; the sweep s1 goes on in the service\n")
+    assert capsys.readouterr().err.endswith("voxe sweep: stopped waiting; the sweep s1 goes on in the service (`voxe "
+                                            "cancel-sweep s1` stops it)\n")
 
 
 def test_ctrl_c_during_a_waited_sweep_writes_no_summary_as_if_final(monkeypatch, capsys, tmp_path):
@@ -304,7 +305,8 @@ def test_ctrl_c_during_a_waited_sweep_writes_no_summary_as_if_final(monkeypatch,
     assert out.read_text() == "earlier"
     assert capsys.readouterr().err.endswith(
         f"voxe sweep: {out} not written: the sweep had not ended (GET /v1/sweeps/s1 gives its summary)\n"
-        "voxe sweep: stopped waiting; the sweep s1 goes on in the service\n")
+        "voxe sweep: stopped waiting; the sweep s1 goes on in the service (`voxe cancel-sweep s1` stops "
+        "it)\n")
 
 
 def test_a_waited_sweep_polls_on_through_an_outage_for_as_long_as_wait_reconnects(monkeypatch, capsys, tmp_path):
@@ -989,7 +991,8 @@ def test_the_readmes_voxe_commands_parse_as_written(capsys):
     commands = [line for line in lines if line.startswith("voxe ")]
     assert len(commands) > 15
     for command in commands:
-        filled = command.replace("<job id>", "J1").replace("<scene id>", "S1").replace("[", "").replace("]", "")
+        filled = command.replace("<job id>", "J1").replace("<scene id>", "S1").replace("<sweep id>", "W1")
+        filled = filled.replace("[", "").replace("]", "")
         try:
             build_parser().parse_args(shlex.split(filled)[1:])
         except SystemExit:

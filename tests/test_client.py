@@ -3115,3 +3115,26 @@ def test_an_evaluation_is_created_through_the_client_once_per_idempotency_key(ap
         assert [job["id"] for job in client.list_jobs(limit=200)["items"]] == [made[0]["id"], edit]
         with pytest.raises(ServiceError, match="^POST /v1/evaluations: HTTP 404: "):
             client.create_evaluation(["nope"], "plane")
+
+
+def test_a_sweep_is_canceled_through_the_client_and_voxe_cancel_sweep(api, tmp_path, capsys):
+    """The client had no call for ``POST /v1/sweeps/{id}/cancel`` nor ``voxe`` a command: a sweep's twelve jobs per
+    scene, once submitted, could be stopped only by curl or one ``voxe cancel`` per job (and ``voxe sweep --wait``
+    stopped by Ctrl-C named no way to). ``cancel_sweep`` and ``voxe cancel-sweep`` cancel its unfinished jobs and
+    answer the sweep; an unknown one is the service's 404, exit 2."""
+    from voxe_core.cli import main
+
+    url, _ = api
+    (tmp_path / "plane.obj").write_text(PLANE_OBJ)
+    with Client(url) as client:
+        scene_id = client.upload_scene(tmp_path / "plane.obj")["id"]
+        sweep = client.create_sweep([{"scene_id": scene_id, "object": "plane"}])
+        jobs = len(sweep["entries"]) * 2
+        assert sweep["counts"] == {"queued": jobs}
+        canceled = client.cancel_sweep(sweep["id"])
+        assert (canceled["id"], canceled["state"], canceled["counts"]) == (sweep["id"], "canceled", {"canceled": jobs})
+        assert client.get_sweep(sweep["id"])["counts"] == {"canceled": jobs}
+    assert main(["cancel-sweep", sweep["id"], "--api", url]) == 0
+    assert json.loads(capsys.readouterr().out)["counts"] == {"canceled": jobs}
+    assert main(["cancel-sweep", "nope", "--api", url]) == 2
+    assert capsys.readouterr().err.startswith("voxe cancel-sweep: error: POST /v1/sweeps/nope/cancel: HTTP 404: ")

@@ -795,6 +795,11 @@ class Client:
         """``GET /v1/sweeps/{id}``: the jobs' states and the summary table."""
         return self._record("sweep", "GET", f"/v1/sweeps/{_segment(sweep_id)}")
 
+    def cancel_sweep(self, sweep_id: str) -> dict:
+        """``POST /v1/sweeps/{id}/cancel``: every unfinished job of the sweep canceled (finished ones and their results
+        stay); the sweep, as :meth:`get_sweep` answers it."""
+        return self._record("sweep", "POST", f"/v1/sweeps/{_segment(sweep_id)}/cancel")
+
     # ------------------------------------------------------------------ webhooks
     def webhook_secret(self) -> str:
         """``GET /v1/webhooks/secret``: this key's webhook signing secret (``whsec_…``, made on first use), which

@@ -14,6 +14,7 @@
     voxe submit PROMPT --scene SCENE_ID | --upload PATH [--mode local --edit-word W] [--idempotency-key K] [--wait]
     voxe status | wait | cancel JOB_ID;  voxe download JOB_ID [--name N] --out DIR (sha256 checked) (service)
     voxe sweep --api URL --scene SCENE_ID=OBJECT ... [--params JSON] [--idempotency-key K] [--wait]     (service)
+    voxe cancel-sweep SWEEP_ID    (its unfinished jobs canceled; the sweep's record as JSON)         (service)
     voxe webhook-secret [--rotate]      (the key's webhook signing secret, printed; --rotate: a new one)  (service)
 
 Options that are job parameters of the service take their defaults from ``voxe_core.presets`` and

@@ -1,6 +1,6 @@
 """The commands that talk to the job service over its HTTP API: ``voxe submit | status | wait | download |
-cancel`` for one job, ``voxe sweep`` for the paper's protocol (SPEC §4), ``voxe webhook-secret [--rotate]`` for the
-key's webhook signing secret.
+cancel`` for one job, ``voxe sweep`` and ``voxe cancel-sweep`` for the paper's protocol (SPEC §4), ``voxe
+webhook-secret [--rotate]`` for the key's webhook signing secret.
 
 They import ``voxe_client`` (the HTTP client) where they run, so the library itself holds no web code. A request
 the service refuses (4xx) exits 2, as any bad input; a service that failed (5xx) or was not reached exits 3.
@@ -134,6 +134,11 @@ def add_parsers(commands, common) -> None:
                          "the wait is interrupted, the sweep not ended), without it the sweep as queued")
     _add_idempotency_argument(sw, "the sweep the first run made")
     sw.set_defaults(run=cmd_sweep)
+
+    cancel = commands.add_parser("cancel-sweep", parents=[common, service],
+                                 help="cancel every unfinished job of a sweep (finished ones and their results stay)")
+    cancel.add_argument("sweep_id")
+    cancel.set_defaults(run=cmd_cancel_sweep)
 
     secret = commands.add_parser("webhook-secret", parents=[common, service],
                                  help="print the key's webhook signing secret (whsec_...: it verifies the "
@@ -362,6 +367,19 @@ def cmd_download(args) -> int:
     return 0
 
 
+def cmd_cancel_sweep(args) -> int:
+    """``voxe cancel-sweep SWEEP_ID``: the sweep's record as JSON, its jobs' states after the cancel."""
+    from voxe_client import ServiceError
+
+    with _client(args) as client:
+        try:
+            sweep = client.cancel_sweep(args.sweep_id)
+        except ServiceError as exc:
+            return _service_error(args.command, exc)
+    print(json.dumps(sweep, indent=2))
+    return 0
+
+
 def cmd_webhook_secret(args) -> int:
     """``voxe webhook-secret [--rotate]``: the secret alone on stdout, for a receiver's configuration."""
     from voxe_client import ServiceError
@@ -434,7 +452,8 @@ def cmd_sweep(args) -> int:
         if args.out is not None and unfinished:
             print(f"voxe sweep: {args.out} not written: the sweep had not ended (GET /v1/sweeps/{sweep['id']} gives "
                   "its summary)", file=sys.stderr)
-        print(f"voxe sweep: stopped waiting; the sweep {sweep['id']} goes on in the service", file=sys.stderr)
+        print(f"voxe sweep: stopped waiting; the sweep {sweep['id']} goes on in the service (`voxe cancel-sweep "
+              f"{sweep['id']}` stops it)", file=sys.stderr)
         return EXIT_INTERRUPTED
     if sweep["state"] != "succeeded":  # as voxe wait: a script must see what did not succeed
         print(f"voxe sweep: the sweep {sweep['id']} ended {sweep['state']}: jobs {sweep['counts']}", file=sys.stderr)
