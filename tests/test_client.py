@@ -1739,6 +1739,27 @@ def test_upload_scene_sends_the_display_name_as_the_name_field_and_keeps_the_fil
     assert b'filename="scene.zip"' in bodies[2] and field not in bodies[2]
 
 
+def test_a_mesh_uploaded_without_a_name_is_named_by_its_file_as_a_zip_is(api, tmp_path, capsys):
+    """The service names an upload by its zip's name, but a mesh goes as files, so ``upload_scene("spot.obj")`` and
+    ``voxe submit --upload spot.obj`` had made a scene named "scene-1a2b3c4d", the mesh's name nowhere in the
+    listing. It is named by the mesh's file name without its suffix, as a zip is; a name given stays."""
+    import zipfile
+
+    from voxe_core.cli import main
+
+    url, _ = api
+    (tmp_path / "my plane.v2.obj").write_text(PLANE_OBJ)
+    with zipfile.ZipFile(tmp_path / "plane.zip", "w") as archive:
+        archive.writestr("plane.obj", PLANE_OBJ)
+    with Client(url) as client:
+        assert client.upload_scene(tmp_path / "my plane.v2.obj")["name"] == "my plane.v2"
+        assert client.upload_scene(tmp_path / "plane.zip")["name"] == "plane"
+        assert client.upload_scene(tmp_path / "my plane.v2.obj", name="given")["name"] == "given"
+        assert main(["submit", "a plane", "--upload", str(tmp_path / "my plane.v2.obj"), "--api", url]) == 0
+        job = client.get_job(capsys.readouterr().out.strip())
+        assert client.get_scene(job["scene_id"])["name"] == "my plane.v2"
+
+
 def test_an_upload_of_a_file_whose_name_is_not_utf8_is_refused_naming_it(tmp_path, monkeypatch, capsys):
     """A file named in another encoding (b"sc\\xffene.zip", a Latin-1 system's) had failed in httpx's multipart
     encoder, "'utf-8' codec can't encode character '\\udcff' in position 12: surrogates not allowed", naming no file."""
