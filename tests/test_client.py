@@ -1760,6 +1760,24 @@ def test_a_mesh_uploaded_without_a_name_is_named_by_its_file_as_a_zip_is(api, tm
         assert client.get_scene(job["scene_id"])["name"] == "my plane.v2"
 
 
+def test_voxe_submit_names_the_scene_it_uploads_as_asked(api, tmp_path, capsys):
+    """``POST /v1/scenes`` takes the scene's display name (``upload_scene(name=)``), but ``voxe submit --upload`` had
+    no option for it: every scene it made was named by its file. --scene-name names it; with --scene (a scene named
+    already) it is refused."""
+    from voxe_core.cli import main
+
+    url, _ = api
+    (tmp_path / "plane.obj").write_text(PLANE_OBJ)
+    submit = ["submit", "a plane", "--api", url, "--scene-name", "plane, take 2"]
+    assert main([*submit, "--upload", str(tmp_path / "plane.obj")]) == 0
+    with Client(url) as client:
+        scene = client.get_scene(client.get_job(capsys.readouterr().out.strip())["scene_id"])
+    assert scene["name"] == "plane, take 2"
+    assert main([*submit, "--scene", scene["id"]]) == 2
+    assert capsys.readouterr().err == ("voxe submit: error: --scene-name names the scene --upload makes; --scene is "
+                                       "one uploaded, named already\n")
+
+
 def test_an_upload_of_a_file_whose_name_is_not_utf8_is_refused_naming_it(tmp_path, monkeypatch, capsys):
     """A file named in another encoding (b"sc\\xffene.zip", a Latin-1 system's) had failed in httpx's multipart
     encoder, "'utf-8' codec can't encode character '\\udcff' in position 12: surrogates not allowed", naming no file."""

@@ -83,6 +83,8 @@ def add_parsers(commands, common) -> None:
     sub.add_argument("--texture", type=Path, default=None, metavar="IMAGE",
                      help="with --upload OBJ or PLY: the image that colours it at its UVs, instead of the one it "
                           "names (as mesh-to-grid --texture)")
+    sub.add_argument("--scene-name", default=None, metavar="NAME",
+                     help="with --upload: the scene's display name (default: the file's name without its suffix)")
     sub.add_argument("--up", choices=("x", "y", "z"), default=None,
                      help="with --upload OBJ or PLY: the mesh file's up axis (default y, as OBJ and glTF exports; z "
                           "for CAD and most scanners), as mesh-to-grid --up")
@@ -260,6 +262,8 @@ def cmd_submit(args) -> int:
                                           if value is not None]):
         raise ValueError(f"{given[0]} goes with --upload (an OBJ or a PLY); an uploaded scene keeps its colours and "
                          "its up axis")
+    if args.scene_name is not None and args.upload is None:  # (an uploaded scene keeps its name)
+        raise ValueError("--scene-name names the scene --upload makes; --scene is one uploaded, named already")
     if args.reconnect_for is not None and not args.wait:  # (it had been taken and ignored, as sweep's --poll was)
         raise ValueError("--reconnect-for sets how long --wait rides out a lost event stream: pass --wait too")
     with _client(args) as client:
@@ -268,7 +272,7 @@ def cmd_submit(args) -> int:
             if args.upload is not None:
                 with warnings.catch_warnings(record=True) as left_out:  # a mesh's .mtl or texture not found
                     warnings.simplefilter("always", MissingCompanionWarning)
-                    scene_id = client.upload_scene(args.upload, texture=args.texture,
+                    scene_id = client.upload_scene(args.upload, name=args.scene_name, texture=args.texture,
                                                    idempotency_key=args.idempotency_key, mesh_shading=args.shading,
                                                    mesh_up_axis=args.up)["id"]
                 for warning in left_out:
