@@ -3375,6 +3375,31 @@ def test_a_mesh_loaded_without_the_mtl_its_obj_names_says_so_on_the_jobs_waiting
                                    "it; the mesh loads without its materials")]
 
 
+def test_a_mesh_or_a_folder_sent_as_files_without_a_name_is_named_by_it_as_a_zip_is(client, dataset):
+    """A scene sent with no name is named by its zip's file name; a mesh or a dataset folder sent as files (curl's
+    ``-F files=@spot.obj``, a folder's files under its name) had been named "scene-<id>". Now by the mesh's file
+    name or the one folder, suffix dropped; files sent loose name nothing."""
+    obj = b"v 0 0 0\nv 1 0 0\nv 1 1 0\nf 1 2 3\n"
+    mesh = client.post("/v1/scenes", files=[("files", ("spot.v2.obj", obj, "text/plain"))])
+    assert mesh.status_code == 201, mesh.text
+    assert (mesh.json()["format"], mesh.json()["name"]) == ("mesh", "spot.v2")
+    in_folder = client.post("/v1/scenes", files=[("files", ("meshes/cow.OBJ", obj, "text/plain"))])
+    assert in_folder.json()["name"] == "cow"
+
+    def sent_as_files(prefix: str) -> dict:
+        files = [("files", (prefix + p.relative_to(dataset).as_posix(), p.read_bytes()))
+                 for p in sorted(dataset.rglob("*")) if p.is_file()]
+        response = client.post("/v1/scenes", files=files)
+        assert response.status_code == 201, response.text
+        return response.json()
+
+    assert sent_as_files("mic_small/")["name"] == "mic_small"
+    loose = sent_as_files("")
+    assert loose["name"] == f"scene-{loose['id'][:8]}"
+    given = client.post("/v1/scenes", files=[("files", ("spot.obj", obj, "text/plain"))], data={"name": "given"})
+    assert given.json()["name"] == "given"
+
+
 def test_a_job_created_on_a_mesh_scene_once_ready_is_told_its_ingests_warnings(client, root, monkeypatch):
     """The ingest's warnings (an OBJ's .mtl not sent: the mesh loads grey) had been told to the jobs waiting for the
     scene alone: one created once it was ready was never told, nor did the scene say it. The scene keeps them (its

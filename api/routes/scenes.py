@@ -134,7 +134,8 @@ def create_scene(
         None, description="alternatively the dataset's files, each named by its path in the dataset folder "
                           "(e.g. transforms.json, images/0001.png)"),
     name: str | None = Form(None, max_length=255, pattern=r"^[^\x00]*$",
-                            description="display name (default: the upload's name); no NUL character"),
+                            description="display name (default: the zip's file name, or the mesh's, or the one folder "
+                                        "the files are in; else scene-<id>); no NUL character"),
     mesh_shading: Literal["auto", "baked", "none"] | None = Form(
         None, description="a mesh upload's colour: baked bakes a fixed key light and ambient occlusion into it, none "
                           "keeps the bare albedo, auto (the default) bakes it only for a mesh without texture or "

@@ -5,7 +5,7 @@ from __future__ import annotations
 import hashlib
 import logging
 from dataclasses import dataclass
-from pathlib import Path
+from pathlib import Path, PurePosixPath
 from typing import BinaryIO
 
 from fastapi import HTTPException, status
@@ -17,6 +17,7 @@ from api.auth import Idempotency, check_upload_bytes, lock_live_key
 from api.http_semantics import ID_SHOWN, listed, try_again_soon
 from api.paging import PageQuery, PageRows, read_page
 from api.uploads import UploadError, stage_upload, staging_folder
+from voxe_core.mesh_input import MESH_INPUT_SUFFIXES
 from voxe_service.models import FAILED, QUEUED, RUNNING, ApiKey, Job, Reconstruction, Scene, new_id
 from voxe_service.queue import QUEUE_UNAVAILABLE, TaskQueue
 from voxe_service.scenes import fail_scene, lock_scene
@@ -37,6 +38,25 @@ class Upload:
     name: str | None
     mesh_shading: str | None = None
     mesh_up_axis: str | None = None
+
+    def default_name(self, scene_format: str) -> str:
+        """The name of a scene of ``scene_format`` sent with none: its zip's file name, or its mesh's, or the one
+        folder its files are in, without suffix and control characters; "" where there is none (a folder's files
+        sent loose). A mesh or a folder sent as files (curl's ``-F files=@spot.obj``) had been named "scene-<id>", a
+        zip alone by its name."""
+        if self.archive is not None:
+            stem = Path(self.archive_name or "").stem
+        else:
+            paths = [PurePosixPath(name.replace("\\", "/")) for name, _ in self.files]
+            meshes = [path for path in paths if path.suffix.lower() in MESH_INPUT_SUFFIXES]
+            folders = {path.parts[0] for path in paths if len(path.parts) > 1}
+            if scene_format == "mesh" and len(meshes) == 1:  # (a dataset's own mesh, COLMAP's fused.ply, names none)
+                stem = meshes[0].stem
+            elif len(folders) == 1 and all(len(path.parts) > 1 for path in paths):
+                stem = folders.pop()
+            else:
+                stem = ""
+        return "".join(c for c in stem if c.isprintable())[:255]
 
     def digests(self) -> tuple[str, str | None]:
         """sha256 of what the upload asks for (field names, file names and bytes), not of its multipart framing; a
@@ -109,10 +129,9 @@ def create_scene(*, session: Session, settings: Settings, storage: Storage, queu
         storage_key = scene_key(scene_id, staged.archive_name)
         try:
             stored = storage.put_file(storage_key, staged.archive, "application/zip")
-            stem = Path(upload.archive_name or "").stem if upload.archive is not None else ""
-            default_name = "".join(c for c in stem if c.isprintable())[:255]  # a filename's control characters dropped
             scene = Scene(
-                id=scene_id, owner_key_id=key.id, name=upload.name or default_name or f"scene-{scene_id[:8]}",
+                id=scene_id, owner_key_id=key.id,
+                name=upload.name or upload.default_name(staged.format) or f"scene-{scene_id[:8]}",
                 format=staged.format, image_count=staged.image_count, width=staged.width, height=staged.height,
                 splits=staged.splits, storage_key=storage_key, size_bytes=stored.size, sha256=stored.sha256,
             )
