@@ -65,3 +65,23 @@ def test_the_readmes_two_commands_are_the_ones_ci_runs():
     assert re.search(r"^exec bash \.ci/test$", (REPO / ".ci" / "run").read_text(), re.M)
     for script in ("serve", "test"):
         assert re.search(r"^[^#\n]*\bbash \.ci/setup\b", (REPO / ".ci" / script).read_text(), re.M), script
+
+
+def test_serve_says_the_apis_url_for_every_loopback_host(tmp_path):
+    """``bash .ci/serve`` prints where the API listens; for an IPv6 ``VOXE_HOST`` (``::1``, which the settings take as
+    loopback) it had printed ``http://::1:8000``, a URL no browser or curl opens: now ``http://[::1]:8000``."""
+    (tmp_path / ".ci").mkdir()
+    shutil.copy(REPO / ".ci" / "serve", tmp_path / ".ci" / "serve")
+    python = tmp_path / "python"  # does nothing: the migration passes, the API and the worker end at once
+    python.write_text("#!/usr/bin/env bash\n")
+    python.chmod(0o755)
+
+    def serve(**env) -> str:
+        result = subprocess.run(["bash", ".ci/serve"], cwd=tmp_path, capture_output=True, text=True, timeout=60,
+                                env={**os.environ, "VOXE_PYTHON": str(python), **env})
+        assert result.returncode == 0, result.stderr
+        return result.stderr
+
+    assert "voxe: API on http://127.0.0.1:8000 (docs: http://127.0.0.1:8000/docs)" in serve()
+    assert "voxe: API on http://[::1]:8123 (docs: http://[::1]:8123/docs)" in serve(VOXE_HOST="::1", VOXE_PORT="8123")
+    assert "voxe: API on http://localhost:8000 " in serve(VOXE_HOST="localhost")
