@@ -2567,6 +2567,8 @@ def test_a_mesh_scene_job_voxelizes_the_uploaded_mesh_instead_of_fitting(client,
     assert tasks.reconstruct_task.apply(args=(job["id"],)).get()["state"] == "done"
     done = client.get(f"/v1/jobs/{job['id']}").json()
     assert (done["iteration"], done["total"]) == (1, 1)
+    # its peak memory, as a fit's (README, Memory: result.peak_memory_gb.{reconstruct,...}); the voxelize route had none
+    assert done["result"]["peak_memory_gb"]["reconstruct"] > 0 and done["result"]["peak_memory_kind"] == "process_rss"
     rec = runtime.load_reconstruction(job["reconstruction"]["id"])
     assert rec.params["route"] == "voxelize" and (rec.iteration, rec.total) == (1, 1)
     grid = load_grid(get_storage().get_file(rec.grid_key, root / "g.safetensors"))

@@ -566,8 +566,12 @@ def _fit(job: Job, rec, settings, storage, device: str, claimed_at: float) -> No
         grid = grid_key = None
         try:
             if rec.params.get("route") == "voxelize":  # one step: reported once, at completion
+                from voxe_core.devices import PeakMemory
+
+                # with its peak memory, as a fit reports it: a mesh job's result.peak_memory_gb had no reconstruct
+                memory = PeakMemory(device).start()
                 grid, total = _voxelize(job, rec, settings, storage), 1
-                callbacks.on_progress(Progress("reconstruct", total, total))
+                callbacks.on_progress(Progress("reconstruct", total, total, info=memory.info()))
             else:
                 grid, total = _fit_grid(job, rec, settings, storage, lease, callbacks, checkpoint, device)
             lease.check()
