@@ -86,11 +86,14 @@ def presented_token(request: Request) -> str | None:
     """
     bearers = [value.strip() for scheme, _, value in (line.partition(" ") for line in request.headers.getlist(
         "authorization")) if scheme.lower() == "bearer"]
-    tokens = [token for token in bearers + request.headers.getlist("x-api-key") if token]
+    keys = request.headers.getlist("x-api-key")
+    tokens = [token for token in bearers + keys if token]
     if len(set(tokens)) > 1:
+        # The lines that carried them: two Bearer lines had been told "Authorization: Bearer and X-API-Key lines".
+        lines = " and ".join(f"{count} {name} line{'s' if count > 1 else ''}" for name, count in (
+            ("Authorization: Bearer", sum(map(bool, bearers))), ("X-API-Key", sum(map(bool, keys)))) if count)
         raise HTTPException(status.HTTP_401_UNAUTHORIZED,
-                            f"{len(set(tokens))} different API keys sent (Authorization: Bearer and X-API-Key lines "
-                            "together): send one key", headers=CHALLENGE)
+                            f"{len(set(tokens))} different API keys sent ({lines}): send one key", headers=CHALLENGE)
     return tokens[0] if tokens else None
 
 
