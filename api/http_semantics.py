@@ -53,7 +53,7 @@ from starlette.routing import Match, Mount
 
 from voxe_service.db import DATABASE_UNAVAILABLE, database_outage
 from voxe_service.storage import StorageError, StorageUnavailable
-from voxe_service.webhooks import shorter
+from voxe_service.texts import listed, shorter
 
 log = logging.getLogger("voxe.api")
 _PROBLEM = {"application/json": {"schema": {"$ref": "#/components/schemas/Problem"}}}
@@ -133,18 +133,6 @@ def sends_body(request: Request) -> bool:
 
 
 ID_SHOWN = 100  # characters of an id, name or path from a request a 404 or 405 shows (ids are 32; artifact names fewer)
-
-
-def listed(names: list[str], most: int = 5, width: int = 40) -> str:
-    """``names`` for a message, quoted: the first ``most``, each cut to ``width`` characters, then how many more. A
-    name the client sent may be anything: a raw zip read as a form had named its whole body (a 1.9 MB message).
-
-    Examples:
-        >>> listed(["a", "b"]), listed([str(n) for n in range(7)], most=2), listed(["x" * 9], width=4)
-        ("'a', 'b'", "'0', '1' and 5 more", "'xxxx...'")
-    """
-    shown = ", ".join(repr(name if len(name) <= width else name[:width] + "...") for name in names[:most])
-    return shown + (f" and {len(names) - most} more" if len(names) > most else "")
 
 
 def json_sent(sent_as: str) -> bool:

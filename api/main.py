@@ -20,7 +20,7 @@ from starlette.requests import HTTPConnection
 from api import http_semantics
 from voxe_service.db import run_migrations, sync_clock
 from voxe_service.settings import Settings, get_settings, model_label
-from voxe_service.webhooks import shorter
+from voxe_service.texts import shorter
 
 log = logging.getLogger("voxe.api")
 

@@ -50,7 +50,7 @@ from typing import BinaryIO
 
 from PIL import Image
 
-from api.http_semantics import ID_SHOWN, listed
+from api.http_semantics import ID_SHOWN
 from voxe_core.data import (DatasetError, colmap_transforms, detect_format, find_image, image_candidates,
                             image_not_found, is_dataset_folder, load_scene, quarter_turn_hint)
 from voxe_core.constants import TEXTURE_SUFFIXES
@@ -62,6 +62,7 @@ from voxe_service.datasets import (DATASET_ARCHIVE, MESH_FOLDER, MESH_FORMAT, ME
                                    ignored, package)
 from voxe_service.scratch import locked_folder, sweep_unlocked
 from voxe_service.settings import SettingsError
+from voxe_service.texts import listed
 
 log = logging.getLogger("voxe.api")
 _RATIO_FLOOR = 4 << 20  # below this many bytes out of an entry (or the archive), any ratio is fine (text compresses)

@@ -1973,7 +1973,7 @@ def test_an_if_match_of_weak_and_strong_tags_is_told_why_none_matched(client, ro
     """An If-Match listing W/ tags beside strong ones that all failed had been told the artifact "was replaced",
     also where its W/ tag was the current ETag (nothing was replaced: the W/ kept it from matching). The 412 now
     names the current ETag sent as W/, or else says the strong tags name an older version and W/ ones never match."""
-    from api.http_semantics import listed
+    from voxe_service.texts import listed
 
     _, url = _published_render(root)
     etag = client.head(url).headers["etag"]

@@ -37,6 +37,7 @@ from sqlalchemy.orm import Session
 
 from voxe_client.client import retry_after_s as asked_wait_s  # (the client's reading of Retry-After: one rule)
 from voxe_service.models import ApiKey, Job, WebhookDelivery, utcnow
+from voxe_service.texts import shorter
 
 WEBHOOK_EVENTS = ("stage_started", "stage_completed", "warning", "artifact", "preview", "succeeded", "failed",
                   "canceled")
@@ -763,7 +764,3 @@ def attempt(delivery: WebhookDelivery, secret: str, client: httpx.Client) -> Att
         "" if asked is None else f", asking to be tried again in {asked:.0f} s (Retry-After)")
     return Attempt(response.status_code, error, error, asked)
 
-
-def shorter(text: str, most: int = 200) -> str:
-    """``text`` cut to its first ``most`` characters, "..." saying so."""
-    return text if len(text) <= most else text[:most] + "..."

@@ -11,11 +11,12 @@ from fastapi.responses import StreamingResponse
 from sqlalchemy import select
 
 from api.deps import CurrentKey, SessionDep, StorageDep
-from api.http_semantics import ID_SHOWN, StrictRoute, combined, listed, only_line
+from api.http_semantics import ID_SHOWN, StrictRoute, combined, only_line
 from api.schemas import ArtifactOut
 from api.services.jobs import get_job
 from voxe_service.models import Artifact
 from voxe_service.storage import ObjectNotFound, Storage
+from voxe_service.texts import listed
 
 router = APIRouter(prefix="/v1/jobs/{job_id}/artifacts", tags=["artifacts"], route_class=StrictRoute)
 

@@ -9,12 +9,13 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from api.auth import mark_replayed, replayed_answer
 from api.deps import CurrentKey, IdempotencyKey, QueueDep, SessionDep, SettingsDep, StorageDep
-from api.http_semantics import FORM_MEDIA_TYPE, StrictRoute, listed, media_type, sends_body, takes_several
+from api.http_semantics import FORM_MEDIA_TYPE, StrictRoute, media_type, sends_body, takes_several
 from api.paging import PageQuery, page_query
 from api.schemas import Page, ReconstructionOut, SceneOut
 from api.services import scenes
 from api.uploads import too_many_files
 from voxe_service.settings import get_settings
+from voxe_service.texts import listed
 
 
 class UploadFilesRoute(StrictRoute):

@@ -13,7 +13,7 @@ from sqlalchemy.orm import Session
 
 from api.schemas import EvaluationCreate, EvaluationParams, JobCreate, SweepCreate
 from api.auth import Idempotency, sha256_hex
-from api.http_semantics import ID_SHOWN, listed
+from api.http_semantics import ID_SHOWN
 from api.services.jobs import (
     get_job, new_edit_job, reconstruction_for, record_and_send, request_cancel, scene_deleted, submit, usable_scene,
 )
@@ -24,6 +24,7 @@ from voxe_service.models import (
 )
 from voxe_service.queue import QueueUnavailable, TaskQueue
 from voxe_service.settings import Settings
+from voxe_service.texts import listed
 
 
 def new_evaluation_job(key: ApiKey, settings: Settings, sources: list[Job], object_name: str,

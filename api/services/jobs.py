@@ -17,7 +17,7 @@ from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
 from api.auth import Idempotency, check_active_jobs, lock_live_key, sha256_hex
-from api.http_semantics import ID_SHOWN, listed, try_again_soon
+from api.http_semantics import ID_SHOWN, try_again_soon
 from api.paging import PageQuery, PageRows, read_page
 from api.schemas import JobCreate
 from api.services.scenes import get_scene, refuse_unless_usable
@@ -34,6 +34,7 @@ from voxe_service.models import (
 from voxe_service.queue import QueueUnavailable, TaskQueue, dispatch_job, evaluations_waiting_on
 from voxe_service.scenes import lock_scene
 from voxe_service.settings import Settings
+from voxe_service.texts import listed
 
 log = logging.getLogger("voxe.api")
 

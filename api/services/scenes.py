@@ -14,7 +14,7 @@ from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
 from api.auth import Idempotency, check_upload_bytes, lock_live_key
-from api.http_semantics import ID_SHOWN, listed, try_again_soon
+from api.http_semantics import ID_SHOWN, try_again_soon
 from api.paging import PageQuery, PageRows, read_page
 from api.uploads import UploadError, stage_upload, staging_folder
 from voxe_core.mesh_input import MESH_INPUT_SUFFIXES
@@ -23,6 +23,7 @@ from voxe_service.queue import QUEUE_UNAVAILABLE, TaskQueue
 from voxe_service.scenes import fail_scene, lock_scene
 from voxe_service.settings import Settings
 from voxe_service.storage import Storage, job_key, reconstruction_storage_key, scene_key
+from voxe_service.texts import listed
 
 log = logging.getLogger("voxe.api")
 
