@@ -14,8 +14,11 @@ import re
 from collections.abc import Callable
 from dataclasses import dataclass
 from datetime import datetime, timezone
+from typing import Annotated
 
 from fastapi import HTTPException, Query, Request, status
+from pydantic import BeforeValidator
+from pydantic_core import PydanticCustomError
 from sqlalchemy import func, select, true, tuple_
 from sqlalchemy.orm import Session, join
 
@@ -23,8 +26,24 @@ MAX_OFFSET = 1_000_000_000
 MAX_CURSOR_LENGTH = 200
 ROW_ID = re.compile(r"[0-9a-f]{32}")
 """The form of the rows' ids (voxe_service.models.new_id: uuid4().hex); a cursor's id of any other form is unreadable."""
+_DIGITS = re.compile(r"-?[0-9]+")
 LISTINGS: set[str] = set()
 """The listings :func:`page_query` reads cursors of: a cursor naming one of them may be named in a 422."""
+
+
+def _digits_only(value):
+    """A query integer as written: digits, an optional minus. Pydantic's lax reading of a string had taken 1_0 as
+    10, +5 and " 5" as 5 (a + in a query is a space) and 5.0 as 5: a typo answered as though it were meant."""
+    if isinstance(value, str) and not _DIGITS.fullmatch(value):
+        raise PydanticCustomError("int_parsing", "Input should be an integer written in the digits 0-9 (a leading - "
+                                                 "allowed), nothing else")
+    return value
+
+
+DIGITS_ONLY = BeforeValidator(_digits_only)
+"""Reads an integer query parameter strictly: ``Annotated[int, Query(...), DIGITS_ONLY] = default`` (after the
+``Query``: before it, the document's bounds read ``ge``/``le`` for ``minimum``/``maximum``; with the ``Query`` as the
+default, FastAPI drops it)."""
 
 
 @dataclass(frozen=True)
@@ -51,9 +70,9 @@ def page_query(listing: str) -> Callable[..., PageQuery]:
     LISTINGS.add(listing)
 
     def read(request: Request,
-             limit: int = Query(20, ge=1, le=200),
-             offset: int = Query(0, ge=0, le=MAX_OFFSET, description="rows to skip (a page shifts while rows are "
-                                 "added: prefer `cursor`); not with `cursor`"),
+             limit: Annotated[int, Query(ge=1, le=200), DIGITS_ONLY] = 20,
+             offset: Annotated[int, Query(ge=0, le=MAX_OFFSET, description="rows to skip (a page shifts while rows "
+                                          "are added: prefer `cursor`); not with `cursor`"), DIGITS_ONLY] = 0,
              cursor: str | None = Query(None, max_length=MAX_CURSOR_LENGTH,
                                         description="the `next_cursor` of the page before: the page after its last "
                                                     "row, however many rows were added or deleted since; not with "

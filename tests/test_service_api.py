@@ -1144,6 +1144,32 @@ def test_a_cursor_not_of_the_listing_or_sent_with_an_offset_is_a_422_naming_it(c
     assert too_long.status_code == 422 and "cursor" in too_long.text
 
 
+LENIENT_INTEGERS = ("1_0", "%2B5", "+5", "%205", "5%20", "5.0", "%095")  # _, sign, space (+ in a query), tab, fraction
+
+
+@pytest.mark.parametrize("path", ["/v1/jobs", "/v1/scenes"])
+def test_an_integer_query_parameter_not_written_in_digits_is_a_422_naming_it(client, path):
+    """Pydantic's lax reading of a query string had taken limit=1_0 as 10, +5 or " 5" as 5 and 5.0 as 5: a typo
+    (or a value meant otherwise) answered as if it were plain digits. Only digits (an optional minus) are read now."""
+    for parameter in ("limit", "offset"):
+        for sent in LENIENT_INTEGERS:
+            response = client.get(f"{path}?{parameter}={sent}")
+            assert response.status_code == 422, (parameter, sent, response.text)
+            [error] = response.json()["detail"]
+            assert (error["loc"], error["type"]) == (["query", parameter], "int_parsing"), (parameter, sent)
+            assert error["msg"] == ("Input should be an integer written in the digits 0-9 (a leading - allowed), "
+                                    "nothing else")
+
+
+@pytest.mark.parametrize("path", ["/v1/jobs", "/v1/scenes"])
+def test_integer_query_parameters_in_digits_are_read(client, path):
+    """Plain digits, leading zeros included, are read as before; a negative one is told its bound."""
+    page = client.get(f"{path}?limit=007&offset=0")
+    assert page.status_code == 200 and page.json()["offset"] == 0
+    below = client.get(f"{path}?limit=-1").json()["detail"]
+    assert [(e["loc"], e["type"]) for e in below] == [(["query", "limit"], "greater_than_equal")]
+
+
 CRAFTED_CURSORS = {
     "id a lone surrogate": '["/v1/jobs","2026-12-06T13:00:00+00:00","\\ud800"]',
     "listing a lone surrogate": '["\\ud800","2026-12-06T13:00:00+00:00","' + "0" * 32 + '"]',
