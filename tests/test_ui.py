@@ -541,6 +541,42 @@ def test_a_mesh_uploads_with_the_shading_and_up_axis_chosen(live, browser, tmp_p
         assert client.delete(f"/v1/scenes/{scene_id}").status_code == 204  # the other tests expect their own only
 
 
+def test_an_upload_name_is_counted_in_characters_as_the_api_counts_it(live, browser, tmp_path):
+    """The name field's maxlength="255" counted UTF-16 units where the API counts characters: a name of 200 emoji,
+    which the API takes, was cut to its first 127 as it was pasted, and the scene stored under the cut name, saying
+    nothing. The name is kept whole; one over the API's 255 characters is refused beside it, before the upload."""
+    svc, token, _archive = live
+    driver = browser
+    set_key(driver, svc, token)
+    mesh = tetrahedron(tmp_path)
+    field = driver.find_element("id", "upload-name")
+
+    def paste(name: str) -> None:
+        field.clear()
+        field.click()
+        driver.execute_cdp_cmd("Input.insertText", {"text": name})  # as a paste or an IME types it
+
+    paste("🎤" * 256)
+    assert field.get_attribute("value") == "🎤" * 256
+    driver.find_element("id", "upload-files").send_keys(str(mesh))
+    driver.find_element("css selector", "#upload-form button").click()
+    shown = lambda: text(driver, '[data-error-for="name"]')  # noqa: E731
+    wait_until(shown, 10, what="the name's refusal")
+    assert shown() == "String should have at most 255 characters (name)"
+    assert not text(driver, "#upload-status") and not text(driver, '[data-error-for="upload"]')
+    with httpx.Client(base_url=svc.base, headers={"Authorization": f"Bearer {token}"}) as client:
+        assert client.get("/v1/scenes").json()["total"] == 0  # nothing was uploaded
+    paste("🎤" * 200)
+    driver.find_element("css selector", "#upload-form button").click()
+    wait_until(lambda: "stored as" in text(driver, "#upload-status"), 30, what="the mesh stored",
+               processes=svc.processes)
+    assert not shown()
+    scene_id = text(driver, "#upload-status").split("stored as ")[1].split(";")[0]
+    with httpx.Client(base_url=svc.base, headers={"Authorization": f"Bearer {token}"}) as client:
+        assert client.get(f"/v1/scenes/{scene_id}").json()["name"] == "🎤" * 200
+        assert client.delete(f"/v1/scenes/{scene_id}").status_code == 204  # the other tests expect their own only
+
+
 def test_an_upload_answered_after_a_look_at_a_job_is_watched_until_its_scene_is_ready(live, browser, tmp_path):
     """An upload still being sent while the user looks at a job and comes back: its scene is watched until it is
     ready, and offered. The answer had been watched on the page it was sent from, gone by then, and the home page

@@ -147,5 +147,19 @@ def test_each_field_s_error_is_read_with_it(client):
                 else next((s for s in (name, f"params.{name}") if s in slot_ids), None))
         if slot is not None:
             described[field.get("id") or f"{name}={field.get('value')}"] = (slot_ids[slot], field.get("aria-describedby"))
-    assert len(described) == 14
+    assert len(described) == 15  # the upload name's among them
     assert {field: ids for field, ids in described.items() if ids[0] is None or ids[0] != ids[1]} == {}
+
+
+def test_the_page_s_limit_on_a_scene_name_is_the_api_s(client):
+    """app.js refuses a name over NAME_MOST characters before the upload: that is the document's maxLength of the
+    upload's name, so the page refuses no name the API takes, and lets through none it refuses."""
+    import re
+
+    form = client.get("/openapi.json").json()["paths"]["/v1/scenes"]["post"]["requestBody"]["content"][
+        "multipart/form-data"]["schema"]["$ref"].rsplit("/", 1)[1]
+    name = client.get("/openapi.json").json()["components"]["schemas"][form]["properties"]["name"]
+    [most] = [kind["maxLength"] for kind in name["anyOf"] if kind.get("type") == "string"]
+    script = client.get("/static/app.js").text
+    assert re.search(r"^const NAME_MOST = (\d+);", script, re.MULTILINE).group(1) == str(most)
+    assert 'id="upload-name"' in client.get("/").text and "maxlength" not in client.get("/").text

@@ -7,6 +7,7 @@
 
 const KEY_STORE = "voxe.apiKey";
 const TERMINAL = new Set(["succeeded", "failed", "canceled"]);
+const NAME_MOST = 255;  // characters (code points) of a scene's name: POST /v1/scenes' name, maxLength
 const $ = (selector) => document.querySelector(selector);
 
 const apiKey = () => sessionStorage.getItem(KEY_STORE) || "";
@@ -255,6 +256,12 @@ function initUpload() {
       .map(([field, id]) => [field, $(id).value]).filter(([, value]) => value);
     for (const [field, value] of meshOptions) data.append(field, value);
     if (!archive && !files.length) { showError("upload", "choose a zip, the dataset's folder, or its files"); return; }
+    // Said before the upload, whose 422 would come only once it is sent: in characters, as the API counts (a
+    // maxlength counts UTF-16 units, and had cut a name of emoji the API takes)
+    if ([...name].length > NAME_MOST) {
+      showError("name", `String should have at most ${NAME_MOST} characters (name)`);
+      return;
+    }
     const bar = $("#upload-progress");
     const status = $("#upload-status");
     const sent = $("#upload-sent");
