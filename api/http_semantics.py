@@ -13,6 +13,8 @@
   (:class:`StrictRoute`), rather than ignored or read as its last value.
 * A body sent to a POST or DELETE that takes none (a cancel, a deletion) is a 415 naming the operation
   (:class:`StrictRoute`): it had been ignored, the caller left believing it was read.
+* A body sent with a Content-Encoding other than identity (gzip) is a 415 naming it, with ``Accept-Encoding:
+  identity`` (:func:`refuse_encoded`): none is decoded, and it had been read as the bytes of an unencoded one.
 * A form route's body (an upload) sent as another media type than multipart/form-data (a urlencoded form cannot
   carry a file), or with none, is a 415 naming it (:class:`api.routes.scenes.UploadFilesRoute`); Starlette's 400
   for a multipart body it cannot parse is documented.
@@ -132,6 +134,16 @@ def sends_body(request: Request) -> bool:
     return "transfer-encoding" in request.headers or not (length.isdigit() and int(length) == 0)
 
 
+def refuse_encoded(request: Request) -> None:
+    """415 with ``Accept-Encoding: identity`` (RFC 9110 §15.5.16) for a body sent with a Content-Encoding other than
+    identity, before any of it is read: none is decoded, and a gzipped JSON body had been a 400 "malformed JSON
+    body: it is not UTF-8" (an upload's, "Invalid multipart data."), a plain one labelled gzip read as unencoded."""
+    sent = ", ".join(request.headers.getlist("content-encoding"))
+    if sends_body(request) and any(coding.strip().lower() not in ("", "identity") for coding in sent.split(",")):
+        raise HTTPException(415, f"the body was sent with Content-Encoding {listed([sent], width=ID_SHOWN)}: send it "
+                                 "unencoded (only identity is read)", headers={"Accept-Encoding": "identity"})
+
+
 ID_SHOWN = 100  # characters of an id, name or path from a request a 404 or 405 shows (ids are 32; artifact names fewer)
 
 
@@ -240,8 +252,8 @@ class StrictRoute(APIRoute):
     one-valued one sent twice (422, naming them: ``GET /v1/jobs?stat=running`` had listed every job, and
     ``?limit=1&limit=500`` took the last), and a JSON body one of whose objects names a member twice (400, naming
     it: ``{"prompt": "a", "prompt": "b"}`` had made a job of "b"; :class:`UniqueMembersRequest`), and a body sent to
-    a POST or DELETE taking none (415, :meth:`refuse_body`). A body that does not parse is FastAPI's error as before
-    (:func:`malformed_body`, :func:`unreadable_body`)."""
+    a POST or DELETE taking none (415, :meth:`refuse_body`), or one sent encoded (415, :func:`refuse_encoded`). A
+    body that does not parse is FastAPI's error as before (:func:`malformed_body`, :func:`unreadable_body`)."""
 
     @cached_property
     def query_fields(self) -> dict:
@@ -283,8 +295,10 @@ class StrictRoute(APIRoute):
             self.refuse_odd_query(request)
             if self.body_field is None:
                 await self.refuse_body(request)
-            elif json_sent(media_type(request)):
-                request = UniqueMembersRequest(request.scope, request.receive)  # nothing read yet
+            else:
+                refuse_encoded(request)
+                if json_sent(media_type(request)):
+                    request = UniqueMembersRequest(request.scope, request.receive)  # nothing read yet
             return await handler(request)
 
         return check_then_handle
@@ -454,13 +468,15 @@ def document(schema: dict) -> dict:
                 responses.setdefault("400", {"description": "malformed JSON body (it does not parse as JSON, or an "
                                                             "object names a member twice)",
                                              "content": _PROBLEM})
-                responses.setdefault("415", {"description": "the body was not sent as JSON (Content-Type)",
+                responses.setdefault("415", {"description": "the body was not sent as JSON (Content-Type), or was "
+                                                            "sent encoded (a Content-Encoding other than identity)",
                                              "content": _PROBLEM})
             if FORM_MEDIA_TYPE in operation.get("requestBody", {}).get("content", {}):
                 responses.setdefault("400", {"description": "malformed multipart body (Starlette's parser names "
                                                             "the fault: a missing boundary, a bad part header)",
                                              "content": _PROBLEM})
-                responses.setdefault("415", {"description": f"the body was not sent as a form ({FORM_MEDIA_TYPE})",
+                responses.setdefault("415", {"description": f"the body was not sent as a form ({FORM_MEDIA_TYPE}), or "
+                                                            "was sent encoded (a Content-Encoding other than identity)",
                                              "content": _PROBLEM})
             if method.upper() in TAKE_CONTENT and "requestBody" not in operation:
                 responses.setdefault("415", {"description": "a body was sent: the operation takes none",

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import asyncio
 import copy
+import gzip
 import json
 
 import jsonschema
@@ -444,6 +445,30 @@ def test_an_upload_not_sent_as_a_form_is_a_documented_415_and_a_broken_form_a_do
     assert (broken.status_code, broken.json()["detail"]) == (400, "Missing boundary in multipart.")
     assert {"400", "415"} <= set(spec["paths"]["/v1/scenes"]["post"]["responses"])
     assert client.get("/v1/scenes").json()["total"] == 0
+
+
+def test_a_body_sent_with_a_content_encoding_is_a_documented_415_naming_it(client, spec):
+    """Content-Encoding was never read: a gzipped JSON body (a client or proxy compressing requests) was a 400
+    "malformed JSON body: it is not UTF-8", a gzipped upload Starlette's 400 "Invalid multipart data.", and a plain
+    body labelled gzip was read as if unencoded. Such a body is a 415 naming the coding, with Accept-Encoding:
+    identity (RFC 9110 §15.5.16), before any of it is read; identity is no coding."""
+    job = b'{"scene_id": "x", "prompt": "a mic"}'
+    form = client.build_request("POST", "/v1/scenes", files={"archive": ("a.zip", b"PK\x05\x06" + bytes(18))})
+    for path, body, sent_as in (("/v1/jobs", gzip.compress(job), "application/json"),
+                                ("/v1/jobs", job, "application/json"),
+                                ("/v1/sweeps", gzip.compress(b'{"scenes": []}'), "application/json"),
+                                ("/v1/scenes", gzip.compress(form.read()), form.headers["content-type"])):
+        for coding in ("gzip", "GZip", "identity, gzip", "br"):
+            refused = client.post(path, content=body, headers={"content-type": sent_as, "content-encoding": coding})
+            assert (refused.status_code, refused.json()["detail"]) == (
+                415, f"the body was sent with Content-Encoding {coding!r}: send it unencoded (only identity is "
+                     "read)"), (path, coding)
+            assert refused.headers["accept-encoding"] == "identity"
+        assert "Content-Encoding" in spec["paths"][path]["post"]["responses"]["415"]["description"], path
+    plain = client.post("/v1/jobs", content=job, headers={"content-type": "application/json",
+                                                          "content-encoding": "identity"})
+    assert plain.status_code == 404  # read: no such scene
+    assert client.get("/v1/scenes").json()["total"] == 0 and client.get("/v1/jobs").json()["total"] == 0
 
 
 def test_json_naming_a_member_twice_is_a_documented_400_naming_it(client, spec, dataset, root):  # noqa: F811

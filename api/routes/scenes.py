@@ -9,7 +9,8 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from api.auth import mark_replayed, replayed_answer
 from api.deps import CurrentKey, IdempotencyKey, QueueDep, SessionDep, SettingsDep, StorageDep
-from api.http_semantics import FORM_MEDIA_TYPE, StrictRoute, media_type, sends_body, takes_several
+from api.http_semantics import (FORM_MEDIA_TYPE, StrictRoute, media_type, refuse_encoded, sends_body,
+                                takes_several)
 from api.paging import PageQuery, page_query
 from api.schemas import Page, ReconstructionOut, SceneOut
 from api.services import scenes
@@ -46,6 +47,7 @@ class UploadFilesRoute(StrictRoute):
 
         async def parse_then_handle(request: Request) -> Response:
             self.refuse_odd_query(request)  # before the form is read (the handler checks it again)
+            refuse_encoded(request)
             if (sent_as := media_type(request)) != FORM_MEDIA_TYPE and (sent_as or sends_body(request)):
                 raise HTTPException(status.HTTP_415_UNSUPPORTED_MEDIA_TYPE,
                                     f"the body must be sent as a form ({FORM_MEDIA_TYPE}, as curl -F sends it), not "
