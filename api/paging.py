@@ -22,6 +22,8 @@ from pydantic_core import PydanticCustomError
 from sqlalchemy import func, select, true, tuple_
 from sqlalchemy.orm import Session, join
 
+from voxe_service.texts import listed
+
 MAX_OFFSET = 1_000_000_000
 MAX_CURSOR_LENGTH = 200
 ROW_ID = re.compile(r"[0-9a-f]{32}")
@@ -108,11 +110,11 @@ def decode_cursor(listing: str, cursor: str) -> tuple[datetime, str]:
         readable = False
     if not readable:
         raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT,
-                            f"cursor {cursor[:40]!r} is not a cursor of GET {listing}: send a page's next_cursor "
+                            f"cursor {listed([cursor])} is not a cursor of GET {listing}: send a page's next_cursor "
                             "unchanged")
     if name != listing:
         raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT,
-                            f"cursor {cursor[:40]!r} is a cursor of GET {name}, not of GET {listing}")
+                            f"cursor {listed([cursor])} is a cursor of GET {name}, not of GET {listing}")
     return when, row_id
 
 

@@ -1135,7 +1135,7 @@ def test_a_cursor_not_of_the_listing_or_sent_with_an_offset_is_a_422_naming_it(c
                                              "page's next_cursor unchanged"),
             ({"cursor": "!!"}, f"cursor '!!' is not a cursor of GET {path}: send a page's next_cursor unchanged"),
             ({"cursor": foreign},
-             f"cursor {foreign[:40]!r} is a cursor of GET {listing_of_foreign}, not of GET {path}"),
+             f"cursor '{foreign[:40]}...' is a cursor of GET {listing_of_foreign}, not of GET {path}"),
             ({"cursor": cursor, "offset": 0}, "send either cursor or offset, not both: a cursor names where its page "
                                               "starts")):
         response = client.get(path, params=sent)
@@ -1186,7 +1186,7 @@ def test_a_crafted_cursor_is_a_422_naming_it_on_either_database(client, root, cr
     cursor = base64.urlsafe_b64encode(CRAFTED_CURSORS[crafted].encode()).decode().rstrip("=")
     response = client.get("/v1/jobs", params={"cursor": cursor})
     assert (response.status_code, response.json()["detail"]) == (
-        422, f"cursor {cursor[:40]!r} is not a cursor of GET /v1/jobs: send a page's next_cursor unchanged")
+        422, f"cursor '{cursor[:40]}...' is not a cursor of GET /v1/jobs: send a page's next_cursor unchanged")
 
 
 def add_ready_scene(n: int) -> str:
@@ -1880,6 +1880,23 @@ def test_a_last_event_id_past_the_jobs_newest_event_is_a_422_not_a_stream_withou
     assert len(client.get(url, headers={"Last-Event-ID": str(newest + 1)}).json()) == 2
     none_yet = client.get(f"/v1/jobs/{_job_row()}/events", headers={**sse, "Last-Event-ID": "1"})
     assert none_yet.status_code == 422 and "newest event (it has none yet)" in none_yet.json()["detail"]
+
+
+def test_a_long_cursor_or_last_event_id_refused_is_quoted_said_cut(client):
+    """A refused cursor or Last-Event-ID had been quoted as its first 40 characters with nothing saying more was
+    sent: a 60-character one read as though the client had sent those 40. The cut is said ("...") as every other
+    message quoting a client's text says it (voxe_service.texts.listed)."""
+    sent = "c" * 40 + "d" * 20
+    refused = client.get("/v1/jobs", params={"cursor": sent})
+    assert refused.json()["detail"] == (f"cursor '{'c' * 40}...' is not a cursor of GET /v1/jobs: send a page's "
+                                        "next_cursor unchanged")
+    whole = client.get("/v1/jobs", params={"cursor": "c" * 40}).json()["detail"]
+    assert whole.startswith(f"cursor '{'c' * 40}' is not")  # none cut: none said
+    job_id = _job_row()
+    refused = client.get(f"/v1/jobs/{job_id}/events", headers={"Accept": "text/event-stream",
+                                                                "Last-Event-ID": "1" * 40 + "x" * 20})
+    assert (refused.status_code, refused.json()["detail"]) == (
+        422, f"Last-Event-ID must be the id of an event (an integer from 0 to {2**63 - 1}), not '{'1' * 40}...'")
 
 
 def test_a_scene_deleted_by_another_request_meanwhile_is_a_404_not_a_second_204(client, monkeypatch):

@@ -22,6 +22,7 @@ from voxe_core.presets import reconstruction_params
 from voxe_service.models import EVALUATE, R_SUCCEEDED, RUNNING, SUCCEEDED, Job, JobEvent, utcnow
 from voxe_service.progress import NO_FIT, fit_work, overall, stage_costs, stage_fraction
 from voxe_service.settings import model_label
+from voxe_service.texts import listed
 
 router = APIRouter(prefix="/v1/jobs", tags=["jobs"], route_class=StrictRoute)
 
@@ -220,7 +221,7 @@ def _event_id(value: str | None) -> int:
     if not (text.isascii() and text.isdigit()) or len(digits) > 19 or int(digits) > MAX_EVENT_ID:  # "²".isdigit()
         raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT,
                             f"Last-Event-ID must be the id of an event (an integer from 0 to {MAX_EVENT_ID}), "
-                            f"not {value[:40]!r}")
+                            f"not {listed([value])}")
     return int(digits)
 
 
