@@ -31,6 +31,7 @@ from voxe_service.db import get_sessionmaker
 from voxe_service.quotas import lock_key, stored_bytes, upload_limit
 from voxe_service.models import PROCESSING, QUEUED, RUNNING, ApiKey, IdempotencyRecord, Job, utcnow
 from voxe_service.settings import Settings, get_settings, is_loopback
+from voxe_service.texts import listed
 
 TOKEN_PREFIX = "voxe_"
 _TOKEN = re.compile(r"^voxe_([0-9a-f]{12})_[A-Za-z0-9_-]{20,}$")
@@ -97,10 +98,22 @@ def presented_token(request: Request) -> str | None:
     return tokens[0] if tokens else None
 
 
-def unauthorized(token: str | None) -> str:
-    problem = "missing API key" if not token else "invalid or revoked API key"
+def unauthorized(token: str | None, authorization: list[str] = ()) -> str:
+    """The 401's detail for a request presenting ``token`` (None: none read from its ``authorization`` lines)."""
+    problem = "invalid or revoked API key" if token else "missing API key" + _unread(authorization)
     return (f"{problem}: send 'Authorization: Bearer <key>' or 'X-API-Key: <key>' "
             "(keys come from 'python -m api.admin create-key')")
+
+
+def _unread(authorization: list[str]) -> str:
+    """Why Authorization lines gave no key, said without quoting one: a key sent without "Bearer " before it (curl -H
+    "Authorization: voxe_..."), or under another scheme (Token, Basic), had been told "missing API key", as though
+    none was sent. "" for none sent, or only empty Bearer ones."""
+    schemes = [line.strip().partition(" ")[0] for line in authorization if line.strip()]
+    if any(scheme.startswith(TOKEN_PREFIX) for scheme in schemes):
+        return " (Authorization holds a key without 'Bearer ' before it)"
+    others = sorted({scheme for scheme in schemes if scheme.lower() != "bearer"})
+    return f" (Authorization's scheme {listed(others, width=20)} is not read: only Bearer is)" if others else ""
 
 
 def refusal(key: ApiKey | None, token: str | None) -> str | None:
@@ -203,14 +216,15 @@ class RequireKey:
                       f"loopback connections are served, and {why}")
             response = JSONResponse({"detail": detail}, status.HTTP_401_UNAUTHORIZED, headers=CHALLENGE)
             return await response(scope, receive, send)
+        request = Request(scope)
         try:
-            token = presented_token(Request(scope))
+            token = presented_token(request)
         except HTTPException as exc:
             response = JSONResponse({"detail": exc.detail}, exc.status_code, headers=exc.headers)
             return await response(scope, receive, send)
         try:
             key_id, refused = (await anyio.to_thread.run_sync(_live_key_id, token) if token
-                               else (None, unauthorized(token)))
+                               else (None, unauthorized(token, request.headers.getlist("authorization"))))
         except DATABASE_UNAVAILABLE as exc:  # outside the app's handlers: answered here, as a route's would be
             return await unavailable(None, exc)(scope, receive, send)
         if key_id is None:

@@ -88,6 +88,25 @@ def test_requests_need_a_valid_live_key(auth_client, mic_zip):
     assert auth_client.get("/healthz").status_code == 200  # liveness needs no key
 
 
+def test_a_key_sent_without_bearer_or_under_another_scheme_is_told_why_it_was_not_read(auth_client):
+    """A key sent in Authorization without "Bearer " before it (curl -H "Authorization: voxe_..."), or under another
+    scheme (Token, Basic), had been told "missing API key", as though none was sent. The 401 says what was not read,
+    without quoting the key itself."""
+    _, token = _create_key("alice")
+    usage = ("send 'Authorization: Bearer <key>' or 'X-API-Key: <key>' (keys come from 'python -m api.admin "
+             "create-key')")
+    for authorization, why in ((token, "Authorization holds a key without 'Bearer ' before it"),
+                               (f"Token {token}", "Authorization's scheme 'Token' is not read: only Bearer is"),
+                               ("Basic dXNlcjpwYXNz", "Authorization's scheme 'Basic' is not read: only Bearer is")):
+        refused = auth_client.get("/v1/scenes", headers={"Authorization": authorization})
+        assert (refused.status_code, refused.json()["detail"]) == (401, f"missing API key ({why}): {usage}")
+        assert token not in refused.text
+    assert auth_client.get("/v1/scenes").json()["detail"] == f"missing API key: {usage}"  # none sent: as before
+    assert auth_client.get("/v1/scenes", headers={"Authorization": "Bearer "}).json()["detail"] == (
+        f"missing API key: {usage}")
+    assert auth_client.get("/v1/scenes", headers={"Authorization": f"bearer {token}"}).status_code == 200
+
+
 def test_an_expired_key_is_401_saying_it_expired_and_list_keys_shows_when(auth_client, capsys):
     """A key created with --expires-in works until then, and is refused after with a 401 naming the expiry (keys had
     never expired, and a refused one could only read "invalid or revoked"); list-keys shows each key's expiry."""
