@@ -3482,3 +3482,50 @@ def test_a_job_created_on_a_mesh_scene_once_ready_is_told_its_ingests_warnings(c
     evaluation = client.post("/v1/evaluations", json={"job_ids": [later.json()["id"]], "object": "cube"})
     assert evaluation.status_code == 201, evaluation.text
     assert warned(evaluation.json()["id"]) == []
+
+
+def test_a_webhook_sender_polling_while_the_broker_refuses_a_new_job_delivers_none_of_its_warnings(root, monkeypatch):
+    """A job created on a mesh scene whose ingest warned is told its warnings in the transaction that records it,
+    committed before the broker is asked: a sender polling while the broker then refused (the job withdrawn, a 503)
+    had claimed its ``job.warning`` delivery, and told the receiver of a job that never existed. A job never sent is
+    held back from the sender until the broker takes it."""
+    from api.main import create_app
+    from voxe_service import datasets
+    from voxe_service.db import session_scope
+    from voxe_service.models import WebhookDelivery, utcnow
+    from voxe_service.queue import TaskQueue
+    from voxe_service.webhooks import InFlight, Shares, claim_due
+
+    monkeypatch.setenv("VOXE_WEBHOOK_ALLOW_NETWORKS", "127.0.0.0/8")
+    monkeypatch.setenv("VOXE_WEBHOOK_POLL_INTERVAL_S", "3600")  # the API's own sender waits: these claims play it
+    _reset()
+    monkeypatch.setattr(datasets, "MESH_VIEWS", 2)
+    monkeypatch.setattr(datasets, "MESH_VIEW_SIZE", 32)
+    obj = ("mtllib model.mtl\nv 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nv 0 0 1\nusemtl red\nf 1 2 3\nf 1 3 4\nf 1 2 5\n")
+
+    def sender_claims() -> list[str]:
+        with session_scope() as session:
+            won = claim_due(session, utcnow(), 30, 8, Shares(8, 8), InFlight())
+            return [session.get(WebhookDelivery, c.delivery_id).job_id for c in won]
+
+    claimed, real_send = [], TaskQueue.send
+
+    def sender_polls_then_refuse(self, *args):
+        claimed.append(sender_claims())
+        raise ConnectionError("broker down")
+
+    with TestClient(create_app()) as client:
+        scene = client.post("/v1/scenes", files=[("files", ("cube/m.obj", obj.encode(), "text/plain"))]).json()
+        assert ingest(scene["id"]) == {"scene_id": scene["id"], "state": "ready"}
+        body = {"scene_id": scene["id"], **JOB, "webhook_url": "http://127.0.0.1:9/hook",
+                "webhook_events": ["warning"]}
+        monkeypatch.setattr(TaskQueue, "send", sender_polls_then_refuse)
+        refused = client.post("/v1/jobs", json=body)
+        assert refused.status_code == 503, refused.text
+        assert claimed == [[]]  # nothing of the job being created was claimed while the broker was asked
+        with session_scope() as session:
+            assert session.query(WebhookDelivery).count() == 0  # withdrawn with the job
+        monkeypatch.setattr(TaskQueue, "send", real_send)
+        job = client.post("/v1/jobs", json=body)
+        assert job.status_code == 201, job.text
+        assert sender_claims() == [job.json()["id"]]  # once the broker took it, its warning is the sender's

@@ -32,11 +32,11 @@ from urllib.parse import SplitResult, urljoin, urlsplit
 
 import httpcore
 import httpx
-from sqlalchemy import Integer, func, literal_column, select, update
+from sqlalchemy import Integer, func, literal_column, or_, select, update
 from sqlalchemy.orm import Session
 
 from voxe_client.client import retry_after_s as asked_wait_s  # (the client's reading of Retry-After: one rule)
-from voxe_service.models import ApiKey, Job, WebhookDelivery, utcnow
+from voxe_service.models import QUEUED, ApiKey, Job, WebhookDelivery, utcnow
 from voxe_service.texts import shorter
 
 WEBHOOK_EVENTS = ("stage_started", "stage_completed", "warning", "artifact", "preview", "succeeded", "failed",
@@ -540,7 +540,7 @@ def claim_due(session: Session, now: datetime, lease_s: float, limit: int, share
     """Take up to ``limit`` due deliveries, the earliest first, but no more than their ``shares`` to one receiver (its
     :func:`webhook_origin`) and to one API key (the job's owner), counting the attempts ``in_flight``: each moves its
     next attempt ``lease_s`` ahead (so no other sender takes it meanwhile) and counts the attempt; those this
-    caller won.
+    caller won. A job's are held while no broker has taken it yet (:func:`_sent_or_ended`).
 
     The shares keep one receiver's backlog, or one key's many receivers, from taking every slot: a receiver that
     never answers in time, with many deliveries due, had held them all, wave after wave, and so had a key whose jobs
@@ -561,7 +561,7 @@ def claim_due(session: Session, now: datetime, lease_s: float, limit: int, share
         session.commit()
     due = (select(WebhookDelivery.next_attempt_at, WebhookDelivery.id, WebhookDelivery.origin, Job.owner_key_id)
            .join(Job, Job.id == WebhookDelivery.job_id)
-           .where(pending, WebhookDelivery.next_attempt_at <= now, WebhookDelivery.origin != "")
+           .where(pending, WebhookDelivery.next_attempt_at <= now, WebhookDelivery.origin != "", _sent_or_ended())
            .order_by(WebhookDelivery.next_attempt_at, WebhookDelivery.id))
     read = CLAIM_READ_FACTOR * limit
     earliest = session.execute(due.limit(read)).all()
@@ -582,6 +582,14 @@ def claim_due(session: Session, now: datetime, lease_s: float, limit: int, share
         if result.rowcount == 1:
             won.append(Claim(delivery_id, origin, key_id))
     return won
+
+
+def _sent_or_ended():
+    """Jobs whose deliveries may go: not those queued that no broker has taken yet, never started. A job created on a
+    ready scene is told its ``warning`` events before its request hands it to the broker, which may refuse it: the job
+    is then withdrawn (deleted with its deliveries), and one sent meanwhile had told the receiver of a job that never
+    existed. Held until sent (or ended: canceled, failed by the reaper as never sent)."""
+    return or_(Job.task_id.is_not(None), Job.state != QUEUED, Job.started_at.is_not(None))
 
 
 def _within_shares(due: list, limit: int, shares: Shares, in_flight: InFlight) -> list:
