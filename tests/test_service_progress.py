@@ -396,6 +396,27 @@ def test_a_job_that_waited_for_another_jobs_fit_keeps_its_progress_when_the_fit_
     assert after == pytest.approx(costs["reconstruct"] / sum(costs.values()))
 
 
+def test_a_job_that_reused_a_finished_fit_keeps_its_progress_when_another_job_fits_it_again():
+    """A job that reused a fit finished before it began (its edit half done) had fallen back by the whole fit's share
+    when another job found the grid deleted from the storage and fitted it again: the reconstruction pending (then
+    running) again, and, once fitted, finished after the job began, as if the job had waited for it."""
+    from api.routes.jobs import job_out
+
+    began = utcnow() - timedelta(minutes=5)
+    reused = dict(state="running", stage="edit", iteration=50, total=100, completed_stages=["reconstruct"],
+                  reconstruction_reused=True, started_at=began, stage_started_at=began)
+    fitted = Reconstruction(id="r", scene_id="s", params_key="k", params={}, state="succeeded", owner_job_id="other",
+                            iteration=2000, total=2000, finished_at=began - timedelta(minutes=5))
+    refitting = Reconstruction(id="r", scene_id="s", params_key="k", params={}, state="pending", owner_job_id=None,
+                               iteration=0, total=0)
+    refitted = Reconstruction(id="r", scene_id="s", params_key="k", params={}, state="succeeded",
+                              owner_job_id="third", iteration=2000, total=2000, finished_at=utcnow())
+    costs = dict(stage_costs(mode="local", params=_job().params, fit=NO_FIT))
+    expected = (costs["edit"] / 2) / sum(costs.values())
+    for rec in (fitted, refitting, refitted):
+        assert job_out(_job(reconstruction=rec, **reused)).overall_progress == pytest.approx(expected), rec.state
+
+
 def test_eta_scales_later_stages_by_the_current_stages_speed():
     costs = [("reconstruct", 10.0), ("edit", 80.0), ("export", 10.0)]
     args = dict(costs=costs, completed=["reconstruct"], stage="edit", stage_fraction=0.25, finished=False)

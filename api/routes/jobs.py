@@ -70,7 +70,7 @@ def _overall(job: Job) -> tuple[float, float | None]:
     """(overall progress, seconds left for the job): voxe_service.progress over the job's stage costs."""
     rec, result = job.reconstruction, job.result or {}
     reused = rec is not None and rec.state == R_SUCCEEDED and rec.owner_job_id != job.id and not _waited_for(job, rec)
-    if reused or job.mode == EVALUATE:
+    if reused or job.mode == EVALUATE or _reused_a_finished_fit(job):
         fit = NO_FIT  # a finished fit reused: nothing to fit or wait for (an evaluation fits nothing)
     else:
         steps = (rec.total if rec is not None else 0) or (job.total if job.stage == "reconstruct" else 0) or None
@@ -85,6 +85,15 @@ def _overall(job: Job) -> tuple[float, float | None]:
     return overall(costs=costs, completed=job.completed_stages or [], stage=job.stage,
                    stage_fraction=fraction, stage_eta_s=job.eta_seconds if running else None,
                    finished=job.state == SUCCEEDED)
+
+
+def _reused_a_finished_fit(job: Job) -> bool:
+    """Whether the job, past its reconstruct stage, took a fit finished before it started: it neither ran the fit
+    (``reconstruction_reused``) nor waited for it (the worker records ``result.fit`` as a job starts waiting). Read off
+    the job: its reconstruction, fitted again since by another job (its grid deleted from the storage), was pending,
+    then finished after the job began, and the job's progress had jumped by the whole fit's share."""
+    return ("reconstruct" in (job.completed_stages or []) and bool(job.reconstruction_reused)
+            and not (job.result or {}).get("fit"))
 
 
 def _waited_for(job: Job, rec) -> bool:
