@@ -130,6 +130,8 @@ class RefineConfig:
     node_rule: Literal["alpha", "maxpool"] = "maxpool"
     # misc
     seed: int = 0
+    # A label of the run only: the refinement reads the attention maps of the guidance it is given and never loads
+    # this one; the CLI (``voxe refine --model``) and the worker set it to the model they load.
     attention_model: str = ATTENTION_MODEL_ID
 
     def __post_init__(self):
