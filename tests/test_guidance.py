@@ -416,6 +416,28 @@ def test_incomplete_local_folders_are_reported(tiny_path, tmp_path):
         StableDiffusionGuidance.from_pretrained(str(no_tok), local_files_only=True)
 
 
+@pytest.mark.parametrize("removed, lacks", [
+    ("vae", "vae/config.json, weights in vae/"),
+    ("unet/diffusion_pytorch_model.safetensors", "weights in unet/"),
+    ("text_encoder/config.json", "text_encoder/config.json"),
+    ("scheduler", "scheduler/scheduler_config.json"),
+    ("tokenizer/merges.txt", "tokenizer/merges.txt"),
+])
+def test_a_local_folder_missing_a_part_is_reported_naming_that_part(tiny_path, tmp_path, capfd, removed, lacks):
+    """The libraries had named no part: "no file named config.json found in directory <the model's folder>" for a
+    missing vae/, "no file named diffusion_pytorch_model.bin" for the UNet's missing safetensors, and without
+    text_encoder/config.json a default 512-wide encoder was built and failed on the weights' shapes after a table of
+    every layer on stderr ("You set `ignore_mismatched_sizes` to `False`")."""
+    folder = tmp_path / "partial"
+    shutil.copytree(tiny_path, folder)
+    path = folder / removed
+    shutil.rmtree(path) if path.is_dir() else path.unlink()
+    capfd.readouterr()
+    with pytest.raises(ModelNotAvailableError, match=rf"'.*partial' are not available.*the folder lacks {re.escape(lacks)}$"):
+        StableDiffusionGuidance.from_pretrained(str(folder), local_files_only=True)
+    assert "MISMATCH" not in capfd.readouterr().err
+
+
 def test_a_prompt_is_counted_against_what_the_text_encoder_reads_whatever_its_tokenizer_says(guidance):
     """A tokenizer config without model_max_length says 1e30: the worker's check before a fit had then passed an
     82-token prompt the guidance refuses at 77, after the fit. Both read the encoder's positions."""

@@ -130,9 +130,15 @@ def diffusers_model_present(model: str) -> bool:
     index = model_file(model, "model_index.json")
     if index is None:
         return False
-    folder = os.path.dirname(index)  # the local folder, or the cached snapshot of the hub's revision
+    return not missing_parts(os.path.dirname(index))  # the local folder, or the cached snapshot of the hub's revision
 
-    def has_weights(component: str) -> bool:  # sharded (an index beside it): every shard of every index
+
+def missing_parts(folder: str) -> list[str]:
+    """The parts of the diffusers-layout model in ``folder`` that are not there: each file of :data:`DIFFUSERS_FILES`
+    by its path, and "weights in <component>/" for each of :data:`WEIGHTED_COMPONENTS` without them (sharded: every shard
+    of every ``*.index.json``)."""
+
+    def has_weights(component: str) -> bool:
         path = os.path.join(folder, component)
         if not os.path.isdir(path):
             return False
@@ -143,8 +149,8 @@ def diffusers_model_present(model: str) -> bool:
         return any(name.endswith((".safetensors", ".bin")) and os.path.isfile(os.path.join(path, name))
                    for name in names)
 
-    return (all(os.path.isfile(os.path.join(folder, name)) for name in DIFFUSERS_FILES)
-            and all(has_weights(component) for component in WEIGHTED_COMPONENTS))
+    return ([name for name in DIFFUSERS_FILES if not os.path.isfile(os.path.join(folder, name))]
+            + [f"weights in {component}/" for component in WEIGHTED_COMPONENTS if not has_weights(component)])
 
 
 def clip_model_present(model: str) -> bool:
@@ -332,6 +338,12 @@ def load_stable_diffusion(model: str, dtype, local_files_only: bool | None = Non
     folder = local_path(model)
     if folder is not None and not os.path.isdir(folder):
         raise ModelNotAvailableError(not_available_message(model, FileNotFoundError(f"no folder {folder}")))
+    # Named before loading: the libraries had said "no file named config.json found in directory <the folder>" for a
+    # missing vae/, or built a default 512-wide text encoder without its config and failed on the weights' shapes,
+    # after a table of every layer on stderr. (model_index.json is left out: loading reads the components alone.)
+    if folder is not None and (missing := [part for part in missing_parts(folder) if part != "model_index.json"]):
+        raise ModelNotAvailableError(not_available_message(model, FileNotFoundError(
+            f"the folder lacks {', '.join(missing)}")))
     source = model if folder is None else folder
     fault = component_config_fault(model, revision)
     if fault is not None:
