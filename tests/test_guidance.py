@@ -261,6 +261,29 @@ def test_cross_attention_maps_equal_softmax_qk(guidance):
     torch.testing.assert_close(maps, expected, rtol=1e-4, atol=1e-6)
 
 
+def test_cross_attention_probabilities_recorded_under_a_callers_bf16_autocast_are_the_float32_ones(guidance):
+    """The recorded probabilities are softmax(QKᵀ/√d) in float32 of the layer's own queries and keys, whatever autocast
+    the caller runs the UNet under: a bf16 one had run the scores' bmm and the softmax in bf16 (maps stored in bf16,
+    a pixel's probabilities summing to 1 only within 1e-3)."""
+    attn = guidance.unet.mid_block.attentions[0].transformer_blocks[0].attn2
+    g = torch.Generator().manual_seed(7)
+    x = torch.randn(1, 64, attn.to_q.in_features, generator=g)
+    ctx = 3 * torch.randn(1, 77, attn.to_k.in_features, generator=g)
+    store = AttentionStore((8, 8), 8)
+    with torch.no_grad(), torch.autocast("cpu", dtype=torch.bfloat16):
+        CrossAttentionCapture(store)(attn, x, ctx)
+        q, k = attn.to_q(x).float(), attn.to_k(ctx).float()  # the layer's, in bf16 under the autocast
+    heads = attn.heads
+    d = q.shape[-1] // heads
+    q = q.reshape(1, -1, heads, d).transpose(1, 2)
+    k = k.reshape(1, -1, heads, d).transpose(1, 2)
+    expected = torch.softmax(q @ k.transpose(-1, -2) / d**0.5, dim=-1).mean(1).reshape(1, 8, 8, 77)
+    (recorded,) = store.maps
+    assert recorded.dtype == torch.float32
+    torch.testing.assert_close(recorded, expected, rtol=1e-4, atol=1e-6)
+    assert float((recorded.sum(-1) - 1).abs().max()) < 1e-5
+
+
 def test_capture_processor_keeps_the_unet_output(guidance):
     unet = guidance.unet
     g = torch.Generator().manual_seed(6)

@@ -15,6 +15,8 @@ from typing import Iterator
 import torch
 import torch.nn.functional as F
 
+from voxe_core.devices import full_precision
+
 
 class AttentionStore:
     """Accumulates head-averaged cross-attention probabilities per layer during one UNet pass."""
@@ -118,10 +120,11 @@ class CrossAttentionCapture:
         key = attn.head_to_batch_dim(key)
         value = attn.head_to_batch_dim(value)
 
-        scores = torch.bmm(query.float(), key.float().transpose(-1, -2)) * attn.scale
-        if attention_mask is not None:
-            scores = scores + attention_mask.float()
-        probs = scores.softmax(dim=-1)
+        with full_precision(query):  # (a caller's bf16 autocast had run the bmm and softmax in bf16: maps 3% off)
+            scores = torch.bmm(query.float(), key.float().transpose(-1, -2)) * attn.scale
+            if attention_mask is not None:
+                scores = scores + attention_mask.float()
+            probs = scores.softmax(dim=-1)
         self.store.add(probs, attn.heads, hw)
 
         hidden_states = torch.bmm(probs.to(value.dtype), value)
