@@ -461,6 +461,17 @@ def test_a_local_folder_missing_a_part_is_reported_naming_that_part(tiny_path, t
     assert "MISMATCH" not in capfd.readouterr().err
 
 
+def test_a_single_file_checkpoint_is_told_to_be_converted_not_missing(tmp_path):
+    """A single-file Stable Diffusion checkpoint (what many tools save) had been told "no folder <the file>"."""
+    checkpoint = tmp_path / "v1-5-pruned.safetensors"
+    checkpoint.write_bytes(b"weights")
+    with pytest.raises(ModelNotAvailableError, match=rf"NotADirectoryError: {re.escape(str(checkpoint))} is a file, not "
+                                                     r"a folder: a single-file checkpoint .* convert it to the diffusers"
+                                                     r" layout first") as raised:
+        StableDiffusionGuidance.from_pretrained(str(checkpoint), local_files_only=True)
+    assert "no folder" not in str(raised.value)
+
+
 def test_a_prompt_is_counted_against_what_the_text_encoder_reads_whatever_its_tokenizer_says(guidance):
     """A tokenizer config without model_max_length says 1e30: the worker's check before a fit had then passed an
     82-token prompt the guidance refuses at 77, after the fit. Both read the encoder's positions."""

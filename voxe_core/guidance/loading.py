@@ -336,6 +336,11 @@ def load_stable_diffusion(model: str, dtype, local_files_only: bool | None = Non
         kwargs["revision"] = revision
 
     folder = local_path(model)
+    if folder is not None and os.path.isfile(folder):  # (it had been told "no folder <the file>")
+        raise ModelNotAvailableError(not_available_message(model, NotADirectoryError(
+            f"{folder} is a file, not a folder: a single-file checkpoint (.safetensors, .ckpt) is not read here; "
+            "convert it to the diffusers layout first (diffusers' StableDiffusionPipeline.from_single_file(file)"
+            ".save_pretrained(folder))")))
     if folder is not None and not os.path.isdir(folder):
         raise ModelNotAvailableError(not_available_message(model, FileNotFoundError(f"no folder {folder}")))
     # Named before loading: the libraries had said "no file named config.json found in directory <the folder>" for a
