@@ -417,6 +417,28 @@ def test_missing_hub_model_names_id_and_local_folder():
     assert isinstance(info.value, RuntimeError)
 
 
+def test_a_hub_id_the_hub_does_not_have_is_told_to_be_checked_not_that_it_is_offline(monkeypatch):
+    """Downloads allowed, a mistyped id had been told "not available offline: download them once with `huggingface-cli
+    download <the typo>`", though the hub had been asked and had no such model. (The hub's answer as diffusers
+    raises it.)"""
+    from diffusers import UNet2DConditionModel
+
+    def not_on_the_hub(model, *_args, **_kwargs):
+        raise OSError(f"{model} is not a local folder and is not a valid model identifier listed on "
+                      "'https://huggingface.co/models'")
+
+    monkeypatch.delenv("HF_HUB_OFFLINE", raising=False)
+    monkeypatch.setattr(UNet2DConditionModel, "from_pretrained", not_on_the_hub)
+    with pytest.raises(ModelNotAvailableError) as info:
+        StableDiffusionGuidance.from_pretrained("CompVis/stable-diffusion-v1-5", local_files_only=False)
+    message = str(info.value)
+    assert message.startswith("Stable Diffusion weights 'CompVis/stable-diffusion-v1-5' could not be fetched from the "
+                              "Hugging Face hub: check the model id")
+    assert "offline" not in message and "not a valid model identifier" in message
+    with pytest.raises(ModelNotAvailableError, match="'CompVis/stable-diffusion-v1-5' are not available offline"):
+        StableDiffusionGuidance.from_pretrained("CompVis/stable-diffusion-v1-5", local_files_only=True)
+
+
 def test_offline_env_makes_local_files_only_the_default(monkeypatch):
     monkeypatch.setenv("HF_HUB_OFFLINE", "1")
     with pytest.raises(ModelNotAvailableError, match="some-org/also-missing"):

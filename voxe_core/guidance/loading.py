@@ -40,14 +40,23 @@ def offline_env() -> bool:
     return os.environ.get("HF_HUB_OFFLINE", "").strip().lower() in ("1", "true", "yes", "on")
 
 
-def not_available_message(model: str, cause: BaseException | None) -> str:
+def not_available_message(model: str, cause: BaseException | None, offline: bool = True) -> str:
     """The error text for missing weights: which model, how to get it, and what failed underneath. A folder is
-    told to hold the model (a hub download of "./models/sd" had been its remedy), a hub id how to cache it."""
+    told to hold the model (a hub download of "./models/sd" had been its remedy), a hub id how to cache it, or, where
+    downloads were allowed (``offline`` False), to check its id: a mistyped one had been told it was "not available
+    offline" and to download it, though the hub had been asked and has no such model."""
     if local_path(model) is not None:
         msg = (
             f"Stable Diffusion weights '{model}' are not available: that local folder must hold the whole model in "
             f"the diffusers layout ({DIFFUSERS_LAYOUT}, each with its config and weights); or name a hub id "
             f"whose weights are in the Hugging Face cache (HF_HOME)."
+        )
+    elif not offline:
+        msg = (
+            f"Stable Diffusion weights '{model}' could not be fetched from the Hugging Face hub{no_folder_note(model)}: "
+            f"check the model id (a private or gated model also needs a token: `hf auth login`) and this machine's "
+            f"connection, or download them with `hf download {model}` on a machine with internet and point HF_HOME "
+            f"at that cache, or pass a local folder in the diffusers layout ({DIFFUSERS_LAYOUT})."
         )
     else:
         msg = (
@@ -369,7 +378,7 @@ def load_stable_diffusion(model: str, dtype, local_files_only: bool | None = Non
     except loading_errors() as exc:
         if is_out_of_memory(exc):
             raise
-        raise ModelNotAvailableError(not_available_message(model, exc)) from exc
+        raise ModelNotAvailableError(not_available_message(model, exc, bool(local_files_only))) from exc
     if not tokenizer_fits(tokenizer, text_encoder.config.vocab_size):
         raise ModelNotAvailableError(
             not_available_message(
