@@ -483,6 +483,23 @@ def test_a_local_folder_missing_a_part_is_reported_naming_that_part(tiny_path, t
     assert "MISMATCH" not in capfd.readouterr().err
 
 
+def test_a_folder_holding_only_a_variants_weights_is_neither_whole_nor_loaded_unnamed(tiny_path, tmp_path):
+    """What a download of the fp16 files alone leaves: diffusers_model_present had counted it whole (a worker offered
+    it) and loading failed with "no file named diffusion_pytorch_model.bin found in directory <the model's folder>"."""
+    from voxe_core.guidance.loading import diffusers_model_present
+
+    folder = tmp_path / "fp16_only"
+    shutil.copytree(tiny_path, folder)
+    weights = folder / "unet" / "diffusion_pytorch_model.safetensors"
+    weights.rename(weights.with_suffix(".fp16.safetensors"))
+    assert not diffusers_model_present(str(folder))
+    with pytest.raises(ModelNotAvailableError, match=re.escape(
+            "the folder lacks weights in unet/ (only diffusion_pytorch_model.fp16.safetensors: a variant's, which "
+            "loading does not read)")):
+        StableDiffusionGuidance.from_pretrained(str(folder), local_files_only=True)
+    assert diffusers_model_present(str(tiny_path))
+
+
 def test_a_single_file_checkpoint_is_told_to_be_converted_not_missing(tmp_path):
     """A single-file Stable Diffusion checkpoint (what many tools save) had been told "no folder <the file>"."""
     checkpoint = tmp_path / "v1-5-pruned.safetensors"

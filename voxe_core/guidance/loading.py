@@ -145,21 +145,27 @@ def diffusers_model_present(model: str) -> bool:
 def missing_parts(folder: str) -> list[str]:
     """The parts of the diffusers-layout model in ``folder`` that are not there: each file of :data:`DIFFUSERS_FILES`
     by its path, and "weights in <component>/" for each of :data:`WEIGHTED_COMPONENTS` without them (sharded: every shard
-    of every ``*.index.json``)."""
+    of every ``*.index.json``). A variant's weights alone (``diffusion_pytorch_model.fp16.safetensors``, what a
+    download of the fp16 files leaves) are not the component's: loading reads no variant, and had failed on them with
+    "no file named diffusion_pytorch_model.bin found in directory <the model's folder>", the model counted whole."""
 
-    def has_weights(component: str) -> bool:
+    def weights_missing(component: str) -> str | None:
         path = os.path.join(folder, component)
-        if not os.path.isdir(path):
-            return False
-        names = os.listdir(path)
+        names = sorted(os.listdir(path)) if os.path.isdir(path) else []
         indexes = [name for name in names if name.endswith(".index.json")]
         if indexes:
-            return all(shards_present(os.path.join(path, index)) for index in indexes)
-        return any(name.endswith((".safetensors", ".bin")) and os.path.isfile(os.path.join(path, name))
-                   for name in names)
+            whole = all(shards_present(os.path.join(path, index)) for index in indexes)
+        else:
+            whole = any(name.endswith((".safetensors", ".bin")) and name.count(".") == 1
+                        and os.path.isfile(os.path.join(path, name)) for name in names)
+        if whole:
+            return None
+        variants = [name for name in names if name.endswith((".safetensors", ".bin")) and name.count(".") > 1]
+        return f"weights in {component}/" + (f" (only {', '.join(variants)}: a variant's, which loading does not "
+                                             "read)" if variants and not indexes else "")
 
     return ([name for name in DIFFUSERS_FILES if not os.path.isfile(os.path.join(folder, name))]
-            + [f"weights in {component}/" for component in WEIGHTED_COMPONENTS if not has_weights(component)])
+            + [part for component in WEIGHTED_COMPONENTS if (part := weights_missing(component)) is not None])
 
 
 def clip_model_present(model: str) -> bool:
