@@ -773,6 +773,36 @@ def test_a_download_is_announced_with_its_size_and_nothing_local_is(tiny_path, t
     assert download_notice("owner/sd", False, sizes.get) == "downloading owner/sd (5.2 GB)"
 
 
+def test_a_downloads_announced_size_is_of_the_files_loading_fetches_not_the_whole_repository(monkeypatch):
+    """The hub's listing of CompVis/stable-diffusion-v1-4 (its sizes, rounded): its single-file checkpoints, fp16,
+    non-EMA and Flax weights and safety checker had been counted too, "(30.6 GB)" announced for a load that fetches
+    4.3 GB."""
+    from types import SimpleNamespace
+
+    from huggingface_hub import HfApi
+
+    from voxe_core.guidance.loading import download_notice
+
+    listing = {"model_index.json": 541, "sd-v1-4.ckpt": 4_265_380_512, "sd-v1-4-full-ema.ckpt": 7_703_807_346,
+               "scheduler/scheduler_config.json": 313, "tokenizer/vocab.json": 1_059_962, "tokenizer/merges.txt": 524_619,
+               "tokenizer/special_tokens_map.json": 472, "tokenizer/tokenizer_config.json": 806,
+               "text_encoder/config.json": 592, "text_encoder/model.safetensors": 492_265_874,
+               "text_encoder/pytorch_model.bin": 492_305_335, "text_encoder/model.fp16.safetensors": 246_144_152,
+               "unet/config.json": 743, "unet/diffusion_pytorch_model.safetensors": 3_438_167_534,
+               "unet/diffusion_pytorch_model.bin": 3_438_354_725, "unet/diffusion_pytorch_model.fp16.safetensors":
+               1_719_125_304, "unet/diffusion_pytorch_model.non_ema.bin": 3_438_354_725,
+               "unet/diffusion_flax_model.msgpack": 3_438_167_536, "vae/config.json": 551,
+               "vae/diffusion_pytorch_model.safetensors": 334_643_268, "vae/diffusion_pytorch_model.bin": 334_707_217,
+               "safety_checker/pytorch_model.bin": 1_216_064_769}
+    info = SimpleNamespace(siblings=[SimpleNamespace(rfilename=name, size=size) for name, size in listing.items()])
+    monkeypatch.setattr(HfApi, "model_info", lambda self, model, files_metadata=False: info)
+    fetched = sum(size for name, size in listing.items() if name.endswith(("json", ".txt")) or name in (
+        "text_encoder/model.safetensors", "unet/diffusion_pytorch_model.safetensors",
+        "vae/diffusion_pytorch_model.safetensors"))
+    assert round(fetched / 1e9, 1) == 4.3
+    assert download_notice("owner/not-cached-here", False) == "downloading owner/not-cached-here (4.3 GB)"
+
+
 def test_loading_a_local_model_says_nothing_about_downloads(tiny_path):
     heard = []
     StableDiffusionGuidance.from_pretrained(str(tiny_path), device="cpu", on_message=heard.append)

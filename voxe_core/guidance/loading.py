@@ -53,10 +53,11 @@ def not_available_message(model: str, cause: BaseException | None, offline: bool
         )
     elif not offline:
         msg = (
-            f"Stable Diffusion weights '{model}' could not be fetched from the Hugging Face hub{no_folder_note(model)}: "
-            f"check the model id (a private or gated model also needs a token: `hf auth login`) and this machine's "
-            f"connection, or download them with `hf download {model}` on a machine with internet and point HF_HOME "
-            f"at that cache, or pass a local folder in the diffusers layout ({DIFFUSERS_LAYOUT})."
+            f"Stable Diffusion weights '{model}' could not be fetched from the Hugging Face hub"
+            f"{no_folder_note(model)}: check the model id (a private or gated model also needs a token: "
+            f"`hf auth login`) and this machine's connection, or download them with `hf download {model}` on a "
+            f"machine with internet and point HF_HOME at that cache, or pass a local folder in the diffusers layout "
+            f"({DIFFUSERS_LAYOUT})."
         )
     else:
         msg = (
@@ -144,8 +145,8 @@ def diffusers_model_present(model: str) -> bool:
 
 def missing_parts(folder: str) -> list[str]:
     """The parts of the diffusers-layout model in ``folder`` that are not there: each file of :data:`DIFFUSERS_FILES`
-    by its path, and "weights in <component>/" for each of :data:`WEIGHTED_COMPONENTS` without them (sharded: every shard
-    of every ``*.index.json``). A variant's weights alone (``diffusion_pytorch_model.fp16.safetensors``, what a
+    by its path, and "weights in <component>/" for each of :data:`WEIGHTED_COMPONENTS` without them (sharded: every
+    shard of every ``*.index.json``). A variant's weights alone (``diffusion_pytorch_model.fp16.safetensors``, what a
     download of the fp16 files leaves) are not the component's: loading reads no variant, and had failed on them with
     "no file named diffusion_pytorch_model.bin found in directory <the model's folder>", the model counted whole."""
 
@@ -301,14 +302,43 @@ def load_clip_tokenizer(model: str, **kwargs):
 
 
 def hub_download_bytes(model: str) -> int | None:
-    """Bytes of the files of hub model ``model``, or None when the hub cannot say (offline, unknown id)."""
+    """Bytes of the files of hub model ``model`` loading fetches (:func:`files_loaded`), or None when the hub cannot
+    say (offline, unknown id). The whole repository's had been announced: CompVis/stable-diffusion-v1-4's single-file
+    checkpoints, fp16, non-EMA and Flax weights, ten times what a load fetches."""
     from huggingface_hub import HfApi
 
     try:
         info = HfApi().model_info(model, files_metadata=True)
     except loading_errors():
         return None
-    return sum(s.size or 0 for s in info.siblings or []) or None
+    sizes = {s.rfilename: s.size or 0 for s in info.siblings or []}
+    return sum(sizes[name] for name in files_loaded(list(sizes))) or None
+
+
+def files_loaded(names: list[str]) -> list[str]:
+    """Those of a diffusers-layout repository's files ``names`` that loading fetches: the small files of
+    :data:`DIFFUSERS_FILES` and the other files of ``tokenizer/`` and ``scheduler/``, and for each of
+    :data:`WEIGHTED_COMPONENTS` the weights it reads, as the libraries choose them: safetensors before a torch
+    archive, a whole file before shards (an index and every shard beside it), never a variant's (``*.fp16.*``).
+
+    Examples:
+        >>> files_loaded(["unet/config.json", "unet/diffusion_pytorch_model.bin", "sd-v1-4.ckpt",
+        ...               "unet/diffusion_pytorch_model.safetensors", "unet/diffusion_pytorch_model.fp16.safetensors"])
+        ['unet/config.json', 'unet/diffusion_pytorch_model.safetensors']
+    """
+    chosen = [name for name in names if name in DIFFUSERS_FILES or name.startswith(("tokenizer/", "scheduler/"))
+              or name in COMPONENT_CONFIGS]
+    for component in WEIGHTED_COMPONENTS:
+        inside = [name[len(component) + 1:] for name in names if name.startswith(component + "/")]
+        for suffix in (".safetensors", ".bin"):
+            whole = [name for name in inside if name.endswith(suffix) and name.count(".") == 1 and "-of-" not in name]
+            index = [name for name in inside if name.endswith(suffix + ".index.json") and name.count(".") == 3]
+            shards = [name for name in inside if name.endswith(suffix) and name.count(".") == 1 and "-of-" in name]
+            picked = whole[:1] or (index + shards if index else [])
+            if picked:
+                chosen += [f"{component}/{name}" for name in picked]
+                break
+    return chosen
 
 
 def download_notice(model: str, local_files_only: bool,
