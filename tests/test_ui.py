@@ -603,6 +603,41 @@ def test_an_upload_answered_after_a_look_at_a_job_is_watched_until_its_scene_is_
         assert client.delete(f"/v1/scenes/{scene_id}").status_code == 204  # the other tests expect their own only
 
 
+def test_a_scene_s_warnings_are_listed_under_the_upload_once_it_is_ready(live, browser, tmp_path):
+    """What the ingest loaded a mesh without (its .mtl not sent: the mesh loads grey) is listed under the upload's
+    outcome, as the scene's ``warnings`` say: the page had said "ready" only, the user told nothing until a job's
+    events. A later upload without warnings clears the list."""
+    svc, token, _archive = live
+    driver = browser
+    set_key(driver, svc, token)
+    mesh = tetrahedron(tmp_path)
+    mesh.write_text("mtllib tetra.mtl\n" + mesh.read_text())
+    driver.find_element("id", "upload-files").send_keys(str(mesh))
+    driver.find_element("css selector", "#upload-form button").click()
+    wait_until(lambda: "ready" in text(driver, "#upload-status"), 120, what="the scene to be ready",
+               processes=svc.processes)
+    scene_id = re.search(r"\((\S+)\): ready$", text(driver, "#upload-status"))[1]
+    with httpx.Client(base_url=svc.base, headers={"Authorization": f"Bearer {token}"}) as client:
+        warnings = client.get(f"/v1/scenes/{scene_id}").json()["warnings"]
+        assert len(warnings) == 1 and "tetra.mtl" in warnings[0], warnings
+        listed = [item.text for item in driver.find_elements("css selector", "#upload-warnings li")]
+        assert listed == [f"warning: {warning}" for warning in warnings]
+        assert driver.find_element("id", "upload-warnings").is_displayed()
+        screenshot(driver, "scene_warnings")
+        driver.find_element("id", "upload-files").clear()
+        (tmp_path / "plain").mkdir()
+        driver.find_element("id", "upload-files").send_keys(str(tetrahedron(tmp_path / "plain")))
+        driver.find_element("css selector", "#upload-form button").click()
+        wait_until(lambda: re.search(r"\((\S+)\): ready$", text(driver, "#upload-status"))
+                   and scene_id not in text(driver, "#upload-status"), 120, what="the second scene to be ready",
+                   processes=svc.processes)
+        assert not driver.find_elements("css selector", "#upload-warnings li")
+        assert not driver.find_element("id", "upload-warnings").is_displayed()
+        second = re.search(r"\((\S+)\): ready$", text(driver, "#upload-status"))[1]
+        for made in (scene_id, second):  # the other tests expect their own only
+            assert client.delete(f"/v1/scenes/{made}").status_code == 204
+
+
 def test_an_upload_answered_with_no_scene_says_so(live, browser, tmp_path):
     """An upload answered 200 with no scene (a proxy's login page it was redirected to) is said beside the upload: its
     answer had been parsed unguarded, an unhandled rejection left the form at "100 % sent". Sent again, it keeps its

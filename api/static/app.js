@@ -268,6 +268,7 @@ function initUpload() {
     bar.hidden = false;
     bar.value = 0;
     status.textContent = "";  // (the last upload's outcome)
+    showSceneWarnings([]);
     button.disabled = true;  // until the upload is answered: a second click would upload it twice
     const xhr = new XMLHttpRequest();
     xhr.open("POST", "/v1/scenes");
@@ -331,6 +332,7 @@ async function waitForScene(sceneId, status, signal) {
       if (scene.state !== "processing") {
         if (ingesting === sceneId) ingesting = null;
         status.textContent = `scene ${scene.name} (${scene.id}): ${scene.state}`;
+        showSceneWarnings(scene.warnings);
         if (scene.state === "failed") showError("upload", scene.error || "the scene could not be decoded");
         await loadScenes(signal, scene.state === "ready" ? scene.id : undefined);
         return;
@@ -356,6 +358,19 @@ async function waitForScene(sceneId, status, signal) {
     await sleep(retryWait(Math.min(1000 * 2 ** failures, 30_000), failure), signal);
     await shown(signal);
   }
+}
+
+/** What the scene's processing loaded the upload without (a mesh's .mtl not sent, its PLY's texture unread: it
+ * loads grey), listed under the upload's outcome: else they are told only as warning events of its edit jobs. */
+function showSceneWarnings(warnings) {
+  const list = $("#upload-warnings");
+  const items = Array.isArray(warnings) ? warnings.map(String) : [];
+  list.replaceChildren(...items.map((warning) => {
+    const item = document.createElement("li");
+    item.textContent = `warning: ${warning}`;
+    return item;
+  }));
+  list.hidden = !items.length;
 }
 
 /** Load the scene lists; a failure is shown beside the Scene field it leaves empty, and returned (null: none). */
