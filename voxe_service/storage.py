@@ -416,11 +416,12 @@ class S3Storage(Storage):
     object is stored as object metadata. Keys are checked against S3's 1,024-byte limit
     (:data:`S3_KEY_MAX_BYTES`); a store may limit more (SeaweedFS takes each "/"-separated
     part up to 255 bytes, as a file name, and refuses a longer one with KeyTooLongError;
-    the service's own keys' parts are far shorter).
+    the service's own keys' parts are far shorter). ``timeout``: the seconds a connect or a read
+    waits for the endpoint, each try (the service's VOXE_S3_TIMEOUT_S; 60 is botocore's own).
     """
 
     def __init__(self, bucket: str, endpoint_url: str | None = None, region: str | None = None,
-                 prefix: str = "", create_bucket: bool = True, client=None):
+                 prefix: str = "", create_bucket: bool = True, client=None, timeout: float = 60.0):
         import boto3
         from botocore.config import Config
 
@@ -428,7 +429,8 @@ class S3Storage(Storage):
         self.prefix = prefix.strip("/") + "/" if prefix.strip("/") else ""
         self.client = client or boto3.client(
             "s3", endpoint_url=endpoint_url, region_name=region,
-            config=Config(retries={"max_attempts": 5, "mode": "standard"}, s3={"addressing_style": "path"}),
+            config=Config(retries={"max_attempts": 5, "mode": "standard"}, s3={"addressing_style": "path"},
+                          connect_timeout=timeout, read_timeout=timeout),
         )
         if create_bucket:
             self._ensure_bucket()
@@ -640,10 +642,11 @@ def get_storage(settings=None) -> Storage:
 
     settings = settings or get_settings()
     if settings.storage_backend == "s3":
-        key = ("s3", settings.s3_bucket, settings.s3_endpoint_url, settings.s3_region, settings.s3_prefix)
+        key = ("s3", settings.s3_bucket, settings.s3_endpoint_url, settings.s3_region, settings.s3_prefix,
+               settings.s3_timeout_s)
         if key not in _instances:
             _instances[key] = S3Storage(settings.s3_bucket, settings.s3_endpoint_url, settings.s3_region,
-                                        settings.s3_prefix)
+                                        settings.s3_prefix, timeout=settings.s3_timeout_s)
     else:
         key = ("local", str(Path(settings.storage_dir).resolve()))
         if key not in _instances:
