@@ -945,6 +945,58 @@ def test_a_failed_statement_does_not_carry_the_secrets_it_binds(database_url):
     assert "UPDATE no_such_table" in str(failed.value) and "s3cr3t" not in str(failed.value), failed.value
 
 
+def test_a_postgresql_that_accepts_and_never_answers_is_an_outage_within_the_connect_timeout(monkeypatch):
+    """A hung or partitioned PostgreSQL (the TCP connection made, no answer ever): libpq has no connect timeout of
+    its own, so a connect had waited for ever, each request holding its thread (and every /readyz leaving one
+    behind). Now a URL without ``connect_timeout`` gets POSTGRES_CONNECT_TIMEOUT_S, and the connect fails as an
+    outage (the API's 503); one the URL sets is kept."""
+    import contextlib
+    import socket
+    import time
+
+    from sqlalchemy import text
+
+    from voxe_service import db as db_module
+    from voxe_service.db import connect_timeout_args, database_outage, make_engine
+
+    assert connect_timeout_args("postgresql+psycopg://u@db/voxe?connect_timeout=3") == {}
+    assert connect_timeout_args("sqlite:///./var/voxe.db") == {}
+    monkeypatch.setattr(db_module, "POSTGRES_CONNECT_TIMEOUT_S", 2)
+    server = socket.create_server(("127.0.0.1", 0))
+    accepted = []
+
+    def accept_and_stay_silent():
+        with contextlib.suppress(OSError):  # the server closed: the test is over
+            while True:
+                accepted.append(server.accept()[0])
+
+    threading.Thread(target=accept_and_stay_silent, daemon=True).start()
+    engine = make_engine(f"postgresql+psycopg://voxe@127.0.0.1:{server.getsockname()[1]}/voxe")
+    outcome, started = [], time.monotonic()
+
+    def query():
+        try:
+            with engine.connect() as connection:
+                outcome.append(connection.execute(text("SELECT 1")).scalar())
+        except Exception as exc:  # noqa: BLE001 - what the API turns into its 503
+            outcome.append(exc)
+
+    asker = threading.Thread(target=query, daemon=True)
+    asker.start()
+    asker.join(30)
+    try:
+        assert not asker.is_alive(), "the connect still waited on the silent server after 30 s"
+        assert database_outage(outcome[0]) and "timeout" in str(outcome[0]), outcome
+        assert accepted and time.monotonic() - started < 15
+    finally:
+        with contextlib.suppress(OSError):
+            server.shutdown(socket.SHUT_RDWR)  # wakes the accept (a close alone leaves it waiting)
+        server.close()
+        for connection in accepted:
+            connection.close()
+        engine.dispose()
+
+
 # ------------------------------------------------------------------------------------------ the event timeline
 def test_an_event_recorded_while_another_writer_holds_its_job_commits_after_it(db):
     """Event streams read each job's events past the last id they sent. PostgreSQL numbers an event as it is

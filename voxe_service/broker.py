@@ -30,7 +30,7 @@ from kombu.utils.encoding import bytes_to_str
 from sqlalchemy import create_engine, delete, text
 from sqlalchemy.engine import make_url
 
-from voxe_service.db import make_engine
+from voxe_service.db import connect_timeout_args, make_engine
 
 log = logging.getLogger("voxe.broker")
 
@@ -51,7 +51,8 @@ class Channel(_sqla.Channel):
             return make_engine(conninfo.hostname)
         options = {k: v for k, v in conninfo.transport_options.items() if k not in _NOT_ENGINE_OPTIONS}
         # Bound parameters out of its errors, as the metadata engines' (voxe_service.db): a message's body is a task's.
-        return create_engine(conninfo.hostname, hide_parameters=True, **options)
+        return create_engine(conninfo.hostname, hide_parameters=True,
+                             connect_args=connect_timeout_args(conninfo.hostname), **options)
 
     def _open(self):
         first = self.connection.client.hostname not in self._engines

@@ -55,6 +55,20 @@ def ensure_sqlite_dir(url: str) -> None:
         path.parent.mkdir(parents=True, exist_ok=True)
 
 
+POSTGRES_CONNECT_TIMEOUT_S = 10
+"""How long a PostgreSQL connect waits for the server where the URL sets no ``connect_timeout``: libpq waits for ever,
+so a server that accepts and never answers (hung, partitioned) had held every request and /readyz thread for good."""
+
+
+def connect_timeout_args(url: str) -> dict:
+    """``connect_args`` giving a psycopg connect :data:`POSTGRES_CONNECT_TIMEOUT_S` unless the URL says its own."""
+    parsed = make_url(url)
+    if (parsed.get_backend_name(), parsed.get_driver_name()) not in (("postgresql", "psycopg"),
+                                                                      ("postgresql", "psycopg2")):
+        return {}
+    return {} if "connect_timeout" in parsed.query else {"connect_timeout": POSTGRES_CONNECT_TIMEOUT_S}
+
+
 def make_engine(url: str, *, pool_size: int = 5, max_overflow: int = 10, pool_timeout_s: float = 30.0) -> Engine:
     """An engine for ``url`` whose pool holds ``pool_size`` connections, opens up to ``max_overflow`` more under load,
     and makes a caller finding all in use wait ``pool_timeout_s`` before ``sqlalchemy.exc.TimeoutError``.
@@ -79,7 +93,7 @@ def make_engine(url: str, *, pool_size: int = 5, max_overflow: int = 10, pool_ti
             cursor.close()
 
         return engine
-    return create_engine(url, pool_pre_ping=True, hide_parameters=True, **pool)
+    return create_engine(url, pool_pre_ping=True, hide_parameters=True, connect_args=connect_timeout_args(url), **pool)
 
 
 @lru_cache
