@@ -949,15 +949,16 @@ def test_a_postgresql_that_accepts_and_never_answers_is_an_outage_within_the_con
     """A hung or partitioned PostgreSQL (the TCP connection made, no answer ever): libpq has no connect timeout of
     its own, so a connect had waited for ever, each request holding its thread (and every /readyz leaving one
     behind). Now a URL without ``connect_timeout`` gets POSTGRES_CONNECT_TIMEOUT_S, and the connect fails as an
-    outage (the API's 503); one the URL sets is kept."""
+    outage (the API's 503), its migrations at startup too; one the URL sets is kept."""
     import contextlib
     import socket
     import time
 
     from sqlalchemy import text
+    from sqlalchemy.exc import OperationalError
 
     from voxe_service import db as db_module
-    from voxe_service.db import connect_timeout_args, database_outage, make_engine
+    from voxe_service.db import connect_timeout_args, database_outage, make_engine, run_migrations
 
     assert connect_timeout_args("postgresql+psycopg://u@db/voxe?connect_timeout=3") == {}
     assert connect_timeout_args("sqlite:///./var/voxe.db") == {}
@@ -988,6 +989,10 @@ def test_a_postgresql_that_accepts_and_never_answers_is_an_outage_within_the_con
         assert not asker.is_alive(), "the connect still waited on the silent server after 30 s"
         assert database_outage(outcome[0]) and "timeout" in str(outcome[0]), outcome
         assert accepted and time.monotonic() - started < 15
+        started = time.monotonic()  # the API's first connect: its migrations at startup
+        with pytest.raises(OperationalError, match="timeout"):
+            run_migrations(f"postgresql+psycopg://voxe@127.0.0.1:{server.getsockname()[1]}/voxe")
+        assert time.monotonic() - started < 15
     finally:
         with contextlib.suppress(OSError):
             server.shutdown(socket.SHUT_RDWR)  # wakes the accept (a close alone leaves it waiting)

@@ -7,6 +7,7 @@ from logging.config import fileConfig
 from alembic import context
 from sqlalchemy import engine_from_config, pool, text
 
+from voxe_service.db import connect_timeout_args
 from voxe_service.models import Base
 
 config = context.config
@@ -34,7 +35,8 @@ def run_migrations_offline() -> None:
 
 def run_migrations_online() -> None:
     connectable = engine_from_config(config.get_section(config.config_ini_section, {}), prefix="sqlalchemy.",
-                                     poolclass=pool.NullPool, hide_parameters=True)  # (as voxe_service.db's)
+                                     poolclass=pool.NullPool, hide_parameters=True,  # (as voxe_service.db's)
+                                     connect_args=connect_timeout_args(config.get_main_option("sqlalchemy.url")))
     with connectable.connect() as connection:
         context.configure(connection=connection, target_metadata=target_metadata,
                           render_as_batch=connection.dialect.name == "sqlite")
