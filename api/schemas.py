@@ -320,11 +320,11 @@ class JobCreate(Strict):
 class EvaluationParams(Strict):
     """The ring the edits are scored on, and what they are compared with."""
 
-    views: int = Field(paper.EVALUATION_RING_VIEWS, ge=2, le=360,
+    views: int = Field(paper.EVALUATION_RING_VIEWS, ge=2, le=paper.MAX_EVALUATION_RING_VIEWS,
                        description="poses evenly on a 360° ring (default: the paper's)")
     elevation: float = Field(paper.EVALUATION_RING_ELEVATION, gt=-90, lt=90,
                              description="ring elevation above the horizon, degrees")
-    size: int = Field(paper.EVALUATION_RING_SIZE, ge=11, le=1024, description="ring render size in pixels")
+    size: int = Field(paper.EVALUATION_RING_SIZE, ge=11, le=paper.MAX_RENDER_SIZE, description="ring render size in pixels")
     fid_input: bool = Field(True, description="also FID against the scene's input images (FID_input): a 422 where "
                             "the edits were fitted from fewer than 2 (params.max_images, or the scene's images)")
     save_renders: bool = Field(True, description="publish the ring renders as PNG artifacts")

@@ -1162,12 +1162,12 @@ def _count_options() -> list[tuple[str, str]]:
     import argparse
 
     from voxe_core.cli import build_parser
-    from voxe_core.cli.common import int_list, non_negative_int, positive_int
+    from voxe_core.cli.common import int_list, non_negative_int, positive_int, whole_number
 
     commands = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction))
     return [(name, action.option_strings[0]) for name, parser in commands.choices.items()
             for action in parser._actions
-            if action.option_strings and action.type in (positive_int, non_negative_int, int_list)]
+            if action.option_strings and action.type in (positive_int, non_negative_int, int_list, whole_number)]
 
 
 @pytest.mark.parametrize("command, flag", _count_options())
@@ -2087,6 +2087,33 @@ def test_the_evaluation_ring_defaults_are_the_same_for_the_cli_the_library_and_t
     assert ring == (100, 30.0, constants.RENDER_SIZE)  # the paper's ring (SPEC §4)
     for source in (args, EvaluateConfig(), EvaluationParams()):
         assert (source.views, source.elevation, source.size) == ring
+
+
+@pytest.mark.parametrize("flag, value, rule", [
+    ("--views", 0, "must be between 2 (FID needs two samples) and 360 (the service's limit), got 0"),
+    ("--views", 1, "must be between 2 (FID needs two samples) and 360 (the service's limit), got 1"),
+    ("--views", 361, "must be between 2 (FID needs two samples) and 360 (the service's limit), got 361"),
+    ("--size", 0, "must be between 11 px (SSIM's window) and 1024 px (the service's limit), got 0"),
+    ("--size", 10, "must be between 11 px (SSIM's window) and 1024 px (the service's limit), got 10"),
+    ("--size", 1025, "must be between 11 px (SSIM's window) and 1024 px (the service's limit), got 1025"),
+    ("--elevation", 90, "must lie strictly between -90 and 90 degrees, got 90.0"),
+])
+def test_evaluate_ring_options_are_refused_by_one_rule_the_services(flag, value, rule, capsys):
+    """Regression: --views and --size had no upper bound (the API's evaluation stops at 360 views of 1024 px), and
+    their option type said a rule of its own: --views 0 "must be at least 1", then --views 1 "needs at least 2"."""
+    from api.schemas import EvaluationParams
+    from pydantic import ValidationError
+
+    command = ["evaluate", "no_such_grid.safetensors", "--edit", "e.safetensors", "a dog", "--object", "dog",
+               "--out", "eval"]
+    assert main([*command, flag, str(value)]) == 2
+    assert capsys.readouterr().err == f"voxe evaluate: error: {flag} {rule}\n"
+    with pytest.raises(ValidationError):  # the service refuses the same values
+        EvaluationParams(**{flag[2:]: value})
+    for views, size in ((2, 11), (360, 1024)):  # the bounds themselves pass: refused only for the missing grid
+        assert main([*command, "--views", str(views), "--size", str(size)]) == 2
+        assert "no_such_grid" in capsys.readouterr().err
+        EvaluationParams(views=views, size=size)
 
 
 def test_evaluate_refuses_a_mask_of_another_grid_before_reading_its_voxels(sphere_file, tmp_path, capsys):

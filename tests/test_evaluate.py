@@ -70,11 +70,11 @@ def test_ring_renders_are_the_ring_cameras(sphere_grid):
 
 
 def test_evaluate_config_refuses_degenerate_rings():
-    with pytest.raises(ValueError, match="at least 2 views"):
+    with pytest.raises(ValueError, match=r"views must be between 2 \(FID needs two samples\) and 360"):
         EvaluateConfig(views=1)
-    with pytest.raises(ValueError, match="at least 11 px"):
+    with pytest.raises(ValueError, match=r"size must be between 11 px \(SSIM's window\) and 1024 px"):
         EvaluateConfig(size=8)
-    with pytest.raises(ValueError, match="strictly between -90 and 90"):
+    with pytest.raises(ValueError, match="elevation must lie strictly between -90 and 90"):
         EvaluateConfig(elevation=90.0)
 
 

@@ -51,7 +51,8 @@ render's min-max normalised attention maps are 0 everywhere, and the 2–3 px on
 every pose: both ran every attention pass and fit before the cut found no seeds."""
 
 MAX_RENDER_SIZE = 1024
-"""The most pixels a side of the edit's and the refinement's renders may have (the service's bound, and the CLI's)."""
+"""The most pixels a side of the edit's, the refinement's and the evaluation ring's renders may have (the service's
+bound, and the CLI's)."""
 
 FLOAT32_MAX = 3.4028234663852886e38
 """The largest float32: a setting used in float32 past it is inf there (a finite float64 one had passed the
@@ -148,6 +149,10 @@ EVALUATION_RING_ELEVATION = 30.0
 
 EVALUATION_RING_SIZE = RENDER_SIZE
 """Pixels of the evaluation ring's renders: the edit's render size."""
+
+MAX_EVALUATION_RING_VIEWS = 360
+"""The most poses an evaluation ring may have (the service's bound, and the CLI's through ``EvaluateConfig``); its
+renders may be ``MAX_RENDER_SIZE`` px at most."""
 
 # ------------------------------------------------------------------ meshes as input
 TEXTURE_SUFFIXES = (".png", ".jpg", ".jpeg")

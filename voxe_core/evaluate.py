@@ -41,7 +41,7 @@ import torch
 
 from voxe_core.constants import (
     CLIP_MODEL_ID, EVALUATION_RING_ELEVATION, EVALUATION_RING_SIZE, EVALUATION_RING_VIEWS, INCEPTION_FILE,
-    inception_path,
+    MAX_EVALUATION_RING_VIEWS, MAX_RENDER_SIZE, inception_path,
 )
 from voxe_core.devices import PeakMemory, full_precision, resolve_device
 from voxe_core.export import iter_views, render_views, to_uint8, turntable_cameras
@@ -452,12 +452,16 @@ class EvaluateConfig:
     size: int = EVALUATION_RING_SIZE  # ring render size
 
     def __post_init__(self):
-        if self.views < 2:
-            raise ValueError(f"the evaluation ring needs at least 2 views (FID needs two samples), got {self.views}")
-        if self.size < SSIM_WINDOW:
-            raise ValueError(f"ring renders must be at least {SSIM_WINDOW} px (SSIM's window), got {self.size}")
+        # Said "<setting> must ...", as voxe_core.cli.common.said_by_option names the option typed: the one rule of
+        # the CLI's --views / --size / --elevation (its option types had refused 0 views, then this 1)
+        if not 2 <= self.views <= MAX_EVALUATION_RING_VIEWS:
+            raise ValueError(f"views must be between 2 (FID needs two samples) and {MAX_EVALUATION_RING_VIEWS} (the "
+                             f"service's limit), got {self.views}")
+        if not SSIM_WINDOW <= self.size <= MAX_RENDER_SIZE:
+            raise ValueError(f"size must be between {SSIM_WINDOW} px (SSIM's window) and {MAX_RENDER_SIZE} px (the "
+                             f"service's limit), got {self.size}")
         if not -90.0 < self.elevation < 90.0:
-            raise ValueError(f"ring elevation must lie strictly between -90 and 90 degrees, got {self.elevation}")
+            raise ValueError(f"elevation must lie strictly between -90 and 90 degrees, got {self.elevation}")
 
 
 @dataclass

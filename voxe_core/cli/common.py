@@ -254,6 +254,12 @@ def one_or_list(values: list[int] | None) -> int | list[int] | None:
     return values[0] if values is not None and len(values) == 1 else values
 
 
+def whole_number(text: str) -> int:
+    """A count whose range a config checks (``said_by_option``): its option type had said a second, narrower rule
+    (``voxe evaluate --views 0``: "must be at least 1", then ``--views 1``: "needs at least 2")."""
+    return _at_most_max_count(int(text))
+
+
 def positive_int(text: str) -> int:
     value = int(text)
     if value < 1:

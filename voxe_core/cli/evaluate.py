@@ -9,11 +9,12 @@ from pathlib import Path
 
 from voxe_core.cli.common import (
     EXIT_INTERRUPTED, EXIT_USAGE, add_model_arguments, add_view_arguments, check_device, finite_float, load_views,
-    move_staged, positive_int, remove_earlier_outputs, run_stage, staging_folder, view_options_given, writable_file,
-    writable_folder,
+    move_staged, remove_earlier_outputs, run_stage, said_by_option, staging_folder, view_options_given, whole_number,
+    writable_file, writable_folder,
 )
 from voxe_core.constants import (
     CLIP_MODEL_ID, EVALUATION_RING_ELEVATION, EVALUATION_RING_SIZE, EVALUATION_RING_VIEWS, INCEPTION_FILE,
+    MAX_EVALUATION_RING_VIEWS, MAX_RENDER_SIZE,
 )
 
 
@@ -36,12 +37,12 @@ def add_parsers(commands, common) -> None:
     ev.add_argument("--data", type=Path, default=None, metavar="DATA_DIR",
                     help="input views for FID_input (with --inception)")
     add_view_arguments(ev, "train")
-    ev.add_argument("--views", type=positive_int, default=EVALUATION_RING_VIEWS,
-                    help=f"ring views (default {EVALUATION_RING_VIEWS}: the paper's)")
+    ev.add_argument("--views", type=whole_number, default=EVALUATION_RING_VIEWS,
+                    help=f"ring views, at most {MAX_EVALUATION_RING_VIEWS} (default {EVALUATION_RING_VIEWS}: the paper's)")
     ev.add_argument("--elevation", type=finite_float, default=EVALUATION_RING_ELEVATION,
                     help=f"ring elevation in degrees (default {EVALUATION_RING_ELEVATION:g})")
-    ev.add_argument("--size", type=positive_int, default=EVALUATION_RING_SIZE,
-                    help=f"ring render size in pixels (default {EVALUATION_RING_SIZE})")
+    ev.add_argument("--size", type=whole_number, default=EVALUATION_RING_SIZE,
+                    help=f"ring render size in pixels, at most {MAX_RENDER_SIZE} (default {EVALUATION_RING_SIZE})")
     ev.set_defaults(run=cmd_evaluate)
 
 
@@ -56,7 +57,8 @@ def cmd_evaluate(args) -> int:
     from voxe_core.guidance.loading import ModelNotAvailableError
     from voxe_core.refine.storage import load_mask
 
-    config = EvaluateConfig(views=args.views, elevation=args.elevation, size=args.size)
+    with said_by_option({"views": "--views", "elevation": "--elevation", "size": "--size"}):  # (EvaluateConfig's rule)
+        config = EvaluateConfig(views=args.views, elevation=args.elevation, size=args.size)
     for values in args.edit:
         if len(values) not in (2, 3):
             raise ValueError(f"--edit takes EDITED_GRID PROMPT [MASK], got {len(values)} values: {values}")
