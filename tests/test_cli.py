@@ -1856,6 +1856,29 @@ def test_mesh_to_grid_says_what_is_wrong_with_its_mesh_in_one_line(tmp_path, cap
     assert capsys.readouterr().err == f"voxe mesh-to-grid: error: {message}\n"
 
 
+def test_the_services_smoke_test_model_name_is_told_as_such_with_how_to_build_one(sphere_grid, tmp_path, capsys,
+                                                                                  monkeypatch):
+    """Regression: ``--clip-model tiny`` (``--model tiny``), the service's name for its random-weight smoke-test
+    models, was advised "`hf download tiny`", no hub id; the CLI takes such a model as the folder it is built in."""
+    monkeypatch.setenv("HF_HOME", str(tmp_path / "hf"))
+    monkeypatch.chdir(tmp_path)
+    sphere_grid.save(tmp_path / "g.safetensors")
+    note = ("'tiny' is the service's name for its random-weight smoke-test model, which it builds in code; it is no "
+            "hub id, and there is no folder 'tiny' here: write one with {build} and pass that folder (it proves the "
+            "plumbing only, never quality)")
+    assert main(["edit", "g.safetensors", "--prompt", "a dog", "--out", "out", "--offline", "--device", "cpu",
+                 "--model", "tiny"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("voxe edit: model not available: Stable Diffusion weights 'tiny' are not available: "
+                          + note.format(build="`voxe build-tiny-model DIR`") + ". Underlying error: ")
+    assert "download" not in err
+    assert main(["evaluate", "g.safetensors", "--edit", "g.safetensors", "a dog", "--object", "dog", "--out", "ev",
+                 "--offline", "--device", "cpu", "--clip-model", "tiny"]) == 2
+    build = "python -c \"from voxe_core.tiny_eval import build_tiny_clip; build_tiny_clip('DIR')\""
+    assert capsys.readouterr().err == ("voxe evaluate: model not available: CLIP weights 'tiny' are not available: "
+                                       + note.format(build=build) + ".\n")
+
+
 def test_edit_with_missing_weights_names_the_model_and_how_to_provide_it(sphere_grid, tmp_path, capsys, monkeypatch):
     """A hub id is told how to fill the cache; a folder had been told to download itself from the hub
     (`huggingface-cli download ./models/sd`, and `models/sd/v15`, which no hub id can be), and a hub id that reads

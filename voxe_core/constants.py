@@ -140,6 +140,10 @@ CUT_SMOOTHNESS = 5.0
 MAX_SEED = 2**32 - 1
 """The largest seed a job, the CLI or a RefineConfig takes (numpy's seed range; ``voxe_core.presets`` names it too)."""
 
+TINY_MODEL = "tiny"
+"""The name the service's model settings (``VOXE_SDS_MODEL``, ``VOXE_CLIP_MODEL``, ...) give the random-weight
+smoke-test models it builds in code: no hub id, and no folder the CLI reads (it had advised ``hf download tiny``)."""
+
 # ------------------------------------------------------------------ evaluation (SPEC §4)
 EVALUATION_RING_VIEWS = 100
 """Poses evenly on the 360° ring the edits are scored on (the paper's 100)."""

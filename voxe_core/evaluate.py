@@ -41,14 +41,14 @@ import torch
 
 from voxe_core.constants import (
     CLIP_MODEL_ID, EVALUATION_RING_ELEVATION, EVALUATION_RING_SIZE, EVALUATION_RING_VIEWS, INCEPTION_FILE,
-    MAX_EVALUATION_RING_VIEWS, MAX_RENDER_SIZE, inception_path,
+    MAX_EVALUATION_RING_VIEWS, MAX_RENDER_SIZE, TINY_MODEL, inception_path,
 )
 from voxe_core.devices import PeakMemory, full_precision, resolve_device
 from voxe_core.export import iter_views, render_views, to_uint8, turntable_cameras
 from voxe_core.grid import VoxelGrid
 from voxe_core.guidance.loading import (
     ModelNotAvailableError, is_out_of_memory, load_clip_tokenizer, loading_errors, local_path, no_folder_note,
-    offline_env, tokenizer_fits,
+    offline_env, tiny_model_note, tokenizer_fits,
 )
 from voxe_core.guidance.prompts import check_text_length, edit_prompt, tokens_read
 from voxe_core.metrics import PSNR_CAP_DB, SSIM_WINDOW, psnr, ssim
@@ -400,6 +400,9 @@ class ClipScorer:
 def _clip_not_available(model_id: str, cause: str) -> str:
     """The error text for CLIP weights that cannot be loaded: which model, how to provide it, what failed (a folder
     is told to hold the model: a hub download of its path had been its remedy)."""
+    if model_id == TINY_MODEL and local_path(model_id) is None:
+        build = "python -c \"from voxe_core.tiny_eval import build_tiny_clip; build_tiny_clip('DIR')\""
+        return f"CLIP weights '{model_id}' are not available: {tiny_model_note(build)}."
     remedy = ("that local folder must hold a whole CLIPModel with its tokenizer and image processor"
               if local_path(model_id) is not None else
               f"download them once with `hf download {model_id}` on a machine with internet and point HF_HOME at "

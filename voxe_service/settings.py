@@ -21,13 +21,12 @@ from urllib.parse import quote, unquote, urlsplit
 from pydantic import Field, ValidationError, ValidationInfo, field_validator, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
-from voxe_core.constants import ATTENTION_MODEL_ID, CLIP_MODEL_ID, SDS_MODEL_ID
+from voxe_core.constants import ATTENTION_MODEL_ID, CLIP_MODEL_ID, SDS_MODEL_ID, TINY_MODEL
 from voxe_service.keys import is_key
 
 if TYPE_CHECKING:
     from sqlalchemy.engine import URL
 
-TINY_MODEL = "tiny"
 TINY_MODEL_LABEL = "tiny (smoke test, random weights)"
 
 

@@ -10,6 +10,8 @@ import json
 import os
 from typing import Callable
 
+from voxe_core.constants import TINY_MODEL
+
 DIFFUSERS_LAYOUT = "model_index.json, unet/, vae/, text_encoder/, tokenizer/, scheduler/"
 DIFFUSERS_FILES = ("model_index.json", "unet/config.json", "vae/config.json", "text_encoder/config.json",
                    "tokenizer/vocab.json", "tokenizer/merges.txt", "scheduler/scheduler_config.json")
@@ -45,7 +47,9 @@ def not_available_message(model: str, cause: BaseException | None, offline: bool
     told to hold the model (a hub download of "./models/sd" had been its remedy), a hub id how to cache it, or, where
     downloads were allowed (``offline`` False), to check its id: a mistyped one had been told it was "not available
     offline" and to download it, though the hub had been asked and has no such model."""
-    if local_path(model) is not None:
+    if model == TINY_MODEL and local_path(model) is None:
+        msg = f"Stable Diffusion weights '{model}' are not available: {tiny_model_note('`voxe build-tiny-model DIR`')}."
+    elif local_path(model) is not None:
         msg = (
             f"Stable Diffusion weights '{model}' are not available: that local folder must hold the whole model in "
             f"the diffusers layout ({DIFFUSERS_LAYOUT}, each with its config and weights); or name a hub id "
@@ -71,6 +75,14 @@ def not_available_message(model: str, cause: BaseException | None, offline: bool
             detail = detail[:400] + "..."
         msg += f" Underlying error: {type(cause).__name__}: {detail}"
     return msg
+
+
+def tiny_model_note(build: str) -> str:
+    """What ``TINY_MODEL`` names where a model is loaded here, and how to build that model (``build``): it had been
+    told to `hf download tiny`, no hub id."""
+    return (f"'{TINY_MODEL}' is the service's name for its random-weight smoke-test model, which it builds in code; "
+            f"it is no hub id, and there is no folder {TINY_MODEL!r} here: write one with {build} and pass that folder "
+            "(it proves the plumbing only, never quality)")
 
 
 def local_path(model: str) -> str | None:
