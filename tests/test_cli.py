@@ -648,6 +648,32 @@ def test_ctrl_c_while_waiting_stops_following_and_says_the_job_goes_on(monkeypat
                                        "cancel j1` stops it)\n")
 
 
+def test_status_cancel_and_cancel_sweep_print_the_records_text_as_it_is(monkeypatch, capsys):
+    """Regression: the record was printed with JSON's ASCII escapes, a prompt "a café" as "a caf\\u00e9". A stdout
+    that cannot encode it (LANG=C) gets those escapes, the same JSON, rather than an error after the service's answer."""
+    import io
+
+    import httpx
+
+    import voxe_core.cli.service as service
+    from voxe_client import Client
+
+    record = {"id": "j1", "state": "canceled", "prompt": "a café in Zürich ☕", "scene_name": "mic ✓"}
+    monkeypatch.setattr(service, "_client", lambda args: Client(transport=httpx.MockTransport(
+        lambda request: httpx.Response(200, json=record))))
+    for argv in (["status", "j1"], ["cancel", "j1"], ["cancel-sweep", "s1"]):
+        assert main(argv) == 0
+        out = capsys.readouterr().out
+        assert '"prompt": "a café in Zürich ☕"' in out and "\\u" not in out and json.loads(out) == record
+    ascii_stdout = io.TextIOWrapper(io.BytesIO(), encoding="ascii", errors="strict")
+    monkeypatch.setattr(sys, "stdout", ascii_stdout)
+    assert main(["status", "j1"]) == 0
+    ascii_stdout.flush()
+    out = ascii_stdout.buffer.getvalue().decode("ascii")
+    assert '"prompt": "a caf\\u00e9 in Z\\u00fcrich \\u2615"' in out and json.loads(out) == record
+    assert capsys.readouterr().err == ""
+
+
 def test_a_service_that_failed_or_was_not_reached_exits_3_and_a_refusal_2(monkeypatch, capsys):
     """Both had exited 2, which says bad input: a script could not tell an outage to try again later from a request
     the service refused (a job not found, a bad id)."""

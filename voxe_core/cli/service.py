@@ -249,7 +249,7 @@ def _follow(client, job_id: str, args) -> int:
         raise
     if over_the_bar:  # ends the bar redrawn in place; a log's lines end themselves
         print(file=sys.stderr)
-    print(json.dumps(job, indent=2))
+    print_json(job)
     return 0 if job["state"] == "succeeded" else 1
 
 
@@ -329,6 +329,18 @@ def _after_refusal(client, scene_id: str, refusal, idempotency_key: str | None) 
     return f"the scene {scene_id} this command uploaded is deleted"
 
 
+def print_json(record: dict) -> None:
+    """A job's or a sweep's record on stdout as indented JSON, its text in UTF-8 ("a café", not "a caf\\u00e9" as
+    ``json.dumps`` escapes it by default); where stdout cannot encode a character (LANG=C: ASCII), the JSON escapes
+    it, the same values, rather than fail the command once the service has answered."""
+    text = json.dumps(record, indent=2, ensure_ascii=False)
+    try:
+        text.encode(sys.stdout.encoding or "utf-8")
+    except UnicodeEncodeError:
+        text = json.dumps(record, indent=2)
+    print(text)
+
+
 def cmd_job(args) -> int:
     """``voxe status | wait | cancel JOB_ID``."""
     from voxe_client import ServiceError
@@ -340,7 +352,7 @@ def cmd_job(args) -> int:
             job = client.cancel_job(args.job_id) if args.command == "cancel" else client.get_job(args.job_id)
         except ServiceError as exc:
             return _service_error(args.command, exc)
-    print(json.dumps(job, indent=2))
+    print_json(job)
     return 0
 
 
@@ -380,7 +392,7 @@ def cmd_cancel_sweep(args) -> int:
             sweep = client.cancel_sweep(args.sweep_id)
         except ServiceError as exc:
             return _service_error(args.command, exc)
-    print(json.dumps(sweep, indent=2))
+    print_json(sweep)
     return 0
 
 
