@@ -193,12 +193,12 @@ def _command(argv: list[str] | None) -> int:
     changes = {name: getattr(args, name) for name in UPDATES if hasattr(args, name)}
     if args.command == "update-key" and not changes:
         update.error("say what to change: --max-active-jobs, --max-upload-bytes, --expires-in or --never-expires")
+    if args.command == "create-key" and (problem := name_problem(args.name.strip())) is not None:
+        create.error(f"--name {problem}")  # a usage error (2) before the database: down, it had been said instead (1)
 
     run_migrations(get_settings().database_url)
     with session_scope() as session:
         if args.command == "create-key":
-            if (problem := name_problem(args.name.strip())) is not None:
-                parser.error(f"--name {problem}")
             expires_at = utcnow() + args.expires_in if args.expires_in else None
             key, token = create_key(session, args.name.strip(), args.max_active_jobs, args.max_upload_bytes,
                                     expires_at)

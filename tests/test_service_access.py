@@ -335,6 +335,29 @@ def test_an_admin_command_facing_a_database_that_is_down_says_so_without_a_trace
     assert "Traceback" not in err and "s3cret" not in err and len(err.splitlines()) == 1
 
 
+def test_an_admin_usage_error_is_said_before_the_database_is_reached(monkeypatch, capsys):
+    """Regression: a --name create-key refuses was checked after the database's migrations ran: with the database
+    down, ``create-key --name ""`` exited 1 saying the database cannot be reached, not 2 naming --name."""
+    import socket
+
+    from api import admin
+    from service_helpers import reset_service_caches
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]  # nothing listens once it is closed
+    monkeypatch.setenv("VOXE_DATABASE_URL", f"postgresql+psycopg://voxe:s3cret@127.0.0.1:{port}/voxe")
+    reset_service_caches()
+    try:
+        with pytest.raises(SystemExit) as exc:
+            admin.main(["create-key", "--name", " "])
+    finally:
+        reset_service_caches()
+    assert exc.value.code == 2
+    assert capsys.readouterr().err.endswith("python -m api.admin create-key: error: --name must be 1-255 characters, "
+                                            "got 0\n")
+
+
 @BOTH_DATABASES
 def test_revoking_a_key_cancels_its_unfinished_jobs(auth_client, mic_zip, capsys):
     """Its jobs had run on, holding workers, with results no key could read and no request able to cancel them."""
