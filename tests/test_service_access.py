@@ -335,6 +335,30 @@ def test_an_admin_command_facing_a_database_that_is_down_says_so_without_a_trace
     assert "Traceback" not in err and "s3cret" not in err and len(err.splitlines()) == 1
 
 
+def test_the_readmes_admin_exit_codes_are_those_the_commands_exit_with(auth_client, capsys):
+    """The README's admin section said nothing of them (a script calling create-key could not tell a bad name from a
+    key not found); each it names is checked here."""
+    from pathlib import Path
+
+    from api import admin
+
+    readme = " ".join((Path(__file__).parent.parent / "README.md").read_text().split())
+    assert ("Each admin command exits 0 when done; 1 when the key it names does not exist (update-key: or was "
+            "revoked) or the database cannot be reached (said in one line naming `VOXE_DATABASE_URL`); 2 for a usage "
+            "error (an unknown command or option, a value refused, such as a `--name` of control characters, or "
+            "update-key with nothing to change), said before the database is touched.") in readme
+    assert admin.main(["create-key", "--name", "exit codes"]) == 0
+    key_id = capsys.readouterr().out.strip().split("_")[1]
+    assert admin.main(["update-key", "nosuchkey", "--never-expires"]) == 1
+    assert admin.main(["revoke-key", key_id]) == 0
+    assert admin.main(["update-key", key_id, "--never-expires"]) == 1
+    for usage in (["no-such-command"], ["list-keys", "--no-such-option"], ["create-key", "--name", "a\x07b"],
+                  ["update-key", key_id]):
+        with pytest.raises(SystemExit) as exc:
+            admin.main(usage)
+        assert exc.value.code == 2, usage
+
+
 def test_an_admin_usage_error_is_said_before_the_database_is_reached(monkeypatch, capsys):
     """Regression: a --name create-key refuses was checked after the database's migrations ran: with the database
     down, ``create-key --name ""`` exited 1 saying the database cannot be reached, not 2 naming --name."""
