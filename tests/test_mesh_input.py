@@ -1251,6 +1251,28 @@ def test_mesh_shading_is_stored_with_the_upload_and_honoured_by_the_ingest(tmp_p
         pass
 
 
+def test_the_views_a_mesh_ingest_renders_are_those_the_readme_and_max_mesh_faces_say(tmp_path, monkeypatch):
+    """MAX_MESH_FACES's docstring said 120 views, README's POST /v1/scenes row 100: the ingest renders 100 training
+    views and 20 test views; both now say so, counted here from an ingest (at 16 px, the counts as the service's)."""
+    from pathlib import Path
+
+    from voxe_core import mesh_input
+    from voxe_service import datasets
+
+    monkeypatch.setattr(datasets, "MESH_VIEW_SIZE", 16)
+    _, _, root, _ = _ingest_mesh_upload(tmp_path, [("horse.obj", HORSE)])
+    train, test = (len(json.loads((root / f"transforms_{split}.json").read_text())["frames"])
+                   for split in ("train", "test"))
+    readme = " ".join((Path(__file__).parent.parent / "README.md").read_text().split())
+    said = re.search(r"a mesh is first rendered into 256 px views, (\d+) upper-hemisphere training views and (\d+) "
+                     r"test views on the 30° evaluation ring \(the mesh's faces limit: (\d+) renders of every one\)",
+                     readme)
+    assert said is not None and tuple(map(int, said.groups())) == (train, test, train + test) == (100, 20, 120)
+    source = " ".join(Path(mesh_input.__file__).read_text().split())  # (a constant's docstring: in its source only)
+    assert (f"renders {train + test} views of every one (``write_mesh_dataset``: ``MESH_VIEWS``, {train} "
+            f"upper-hemisphere training views, and {test} test views on the evaluation ring)") in source
+
+
 def test_an_obj_uploaded_without_its_texture_is_shaded_by_the_ingest(tmp_path, monkeypatch):
     """Spot's OBJ sent alone (its vt and no material) had rendered as one flat grey of trimesh's (0.39): taken for
     coloured, "auto" did not bake. Now its views are the default albedo, shaded."""

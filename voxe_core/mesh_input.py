@@ -59,7 +59,8 @@ from voxe_core.ply_header import is_numbers, ply_fault
 MESH_INPUT_SUFFIXES = (".obj", ".ply")
 MAX_MESH_FACES = 2_000_000
 """The most triangles a mesh may load as (an N-cornered polygon is N - 2 of them): its ingest shades and renders 120
-views of every one, in time and memory that grow with them (1.3 million faces took 14 minutes)."""
+views of every one (``write_mesh_dataset``: ``MESH_VIEWS``, 100 upper-hemisphere training views, and 20 test views on
+the evaluation ring), in time and memory that grow with them (1.3 million faces took 14 minutes)."""
 DECIMATE = "decimate it (Blender's Decimate modifier, MeshLab's quadric edge collapse)"
 """What to do with a mesh over :data:`MAX_MESH_FACES`, as its upload's and its load's refusals say."""
 DEFAULT_ALBEDO = (0.7, 0.7, 0.7)  # meshes without texture or vertex colours
