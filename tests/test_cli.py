@@ -231,6 +231,25 @@ class FakeSweeps:
         return {"id": sweep_id, "entries": [], "state": next(self.states), "counts": self.counts, "table": "T\n"}
 
 
+def test_a_waited_sweeps_table_on_a_stdout_that_cannot_encode_it_is_printed_escaped(monkeypatch, capsys):
+    """Regression: a table naming "a café ☕" on a Latin-1 stdout raised UnicodeEncodeError after the sweep ended:
+    "voxe sweep: error: 'latin-1' codec can't encode character '\\u2615'", exit 2 for a sweep that succeeded."""
+    import io
+
+    import voxe_core.cli.service as service
+
+    sweeps = FakeSweeps(["succeeded"], {"succeeded": 12})
+    monkeypatch.setattr(sweeps, "get_sweep", lambda sweep_id: {"id": sweep_id, "entries": [], "state": "succeeded",
+                                                                 "counts": {"succeeded": 12}, "table": "a café ☕\n"})
+    monkeypatch.setattr(service, "_client", lambda args: sweeps)
+    latin1 = io.TextIOWrapper(io.BytesIO(), encoding="latin-1")
+    monkeypatch.setattr(sys, "stdout", latin1)
+    assert main(["sweep", "--scene", "s1=mic", "--wait", "--poll", "0.01", "-q"]) == 0
+    latin1.flush()
+    assert latin1.buffer.getvalue().decode("latin-1") == "a café \\u2615\n" and latin1.errors == "strict"
+    assert "error" not in capsys.readouterr().err
+
+
 @pytest.mark.parametrize("end, code", [("succeeded", 0), ("failed", 1), ("canceled", 1)])
 def test_a_waited_sweep_exits_1_unless_it_succeeded(monkeypatch, capsys, tmp_path, end, code):
     """As voxe wait does for a job: a failed sweep had exited 0, saying nothing of its failed jobs."""

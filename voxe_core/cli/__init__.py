@@ -28,9 +28,10 @@ output whose reader stopped reading (``voxe status J | head``) ends the command 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import sys
-from typing import Sequence
+from typing import Iterator, Sequence
 
 from voxe_core.cli import edit, evaluate, grids, mesh, reconstruct, refine, render, service
 from voxe_core.cli.common import (
@@ -63,9 +64,25 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     status = None
     with (removing_made_folders_unless(lambda: status == 0), library_progress_bars_off(args.quiet),
-          sigterm_as_ctrl_c()):
+          sigterm_as_ctrl_c(), _stdout_escaping_what_it_cannot_encode()):
         status = _run(args)
     return interrupted_status() if status == EXIT_INTERRUPTED else status
+
+
+@contextlib.contextmanager
+def _stdout_escaping_what_it_cannot_encode() -> Iterator[None]:
+    """stdout writing a character its encoding lacks as a backslash escape, as Python's stderr does: a table naming
+    "a café ☕" on a Latin-1 or ASCII stdout had raised UnicodeEncodeError once the work was done (``voxe sweep
+    --wait``'s table: "error: 'latin-1' codec can't encode character", exit 2 for a sweep that succeeded)."""
+    stdout = sys.stdout
+    if getattr(stdout, "errors", None) != "strict" or not hasattr(stdout, "reconfigure"):
+        yield
+        return
+    stdout.reconfigure(errors="backslashreplace")
+    try:
+        yield
+    finally:
+        stdout.reconfigure(errors="strict")
 
 
 def _run(args: argparse.Namespace) -> int:
