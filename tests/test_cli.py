@@ -1924,6 +1924,32 @@ def test_the_services_smoke_test_model_name_is_told_as_such_with_how_to_build_on
                                        + note.format(build=build) + ".\n")
 
 
+
+def test_evaluate_inception_tiny_is_told_as_the_services_smoke_test_model(sphere_grid, tmp_path, capsys,
+                                                                           monkeypatch):
+    """Regression: ``--inception tiny`` (the service's VOXE_FID_MODEL=tiny) was told to download NVIDIA's Inception
+    file "and pass its path"; the advice given now builds the smoke-test file, which --inception then takes."""
+    from voxe_core.tiny_eval import build_tiny_clip
+
+    monkeypatch.chdir(tmp_path)
+    sphere_grid.save(tmp_path / "g.safetensors")
+    clip = build_tiny_clip(tmp_path / "clip")  # SMOKE-TEST MODEL: plumbing only
+    capsys.readouterr()  # (its writing's progress)
+    command = ["evaluate", "g.safetensors", "--edit", "g.safetensors", "a dog", "--object", "dog", "--out", "ev",
+               "--device", "cpu", "--clip-model", str(clip), "--views", "2", "--size", "16", "-q", "--inception"]
+    assert main([*command, "tiny"]) == 2
+    err = capsys.readouterr().err
+    build = "python -c \"from voxe_core.tiny_eval import build_tiny_inception; build_tiny_inception('DIR/inception-2015-12-05.pt')\""
+    assert err == ("voxe evaluate: model not available: FID Inception weights not found at tiny: 'tiny' is the "
+                   "service's name for its random-weight smoke-test model, which it builds in code; it is no hub id, "
+                   f"and there is no folder 'tiny' here: write one with {build} and pass that folder (it proves the "
+                   "plumbing only, never quality).\n")
+    _, flag, code = shlex.split(build)  # run as advised, DIR a folder of ours
+    subprocess.run([sys.executable, flag, code.replace("DIR", str(tmp_path / "fid"))], check=True,
+                   env={**os.environ, "PYTHONPATH": str(Path(__file__).parent.parent)})
+    assert main([*command, str(tmp_path / "fid")]) == 0  # the folder it wrote, as the note says
+
+
 def test_edit_with_missing_weights_names_the_model_and_how_to_provide_it(sphere_grid, tmp_path, capsys, monkeypatch):
     """A hub id is told how to fill the cache; a folder had been told to download itself from the hub
     (`huggingface-cli download ./models/sd`, and `models/sd/v15`, which no hub id can be), and a hub id that reads

@@ -294,7 +294,11 @@ class InceptionFeatures:
 
     @classmethod
     def load(cls, path, device=None, batch_size: int = 25) -> "InceptionFeatures":
-        path = inception_path(path)
+        given, path = str(path), inception_path(path)
+        if given == TINY_MODEL and not path.exists():  # (it had been told to download the real file to "tiny")
+            build = (f"python -c \"from voxe_core.tiny_eval import build_tiny_inception; "
+                     f"build_tiny_inception('DIR/{INCEPTION_FILE}')\"")
+            raise ModelNotAvailableError(f"FID Inception weights not found at {given}: {tiny_model_note(build)}.")
         if not path.is_file():
             raise ModelNotAvailableError(
                 f"FID Inception weights not found at {path}: download {INCEPTION_URL} once on a machine with "
