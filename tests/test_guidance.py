@@ -500,6 +500,29 @@ def test_a_folder_holding_only_a_variants_weights_is_neither_whole_nor_loaded_un
     assert diffusers_model_present(str(tiny_path))
 
 
+def test_a_folder_without_model_index_is_present_as_it_is_loaded(tiny_path, tmp_path, monkeypatch):
+    """Loading reads the components alone, but diffusers_model_present required model_index.json: the workers
+    reported missing (and refused jobs for) a folder, or a cached snapshot, the CLI loaded. One rule now."""
+    import huggingface_hub.constants
+
+    from voxe_core.guidance.loading import diffusers_model_present, load_stable_diffusion
+
+    folder = tmp_path / "no_index"
+    shutil.copytree(tiny_path, folder)
+    (folder / "model_index.json").unlink()
+    assert diffusers_model_present(str(folder))
+    assert load_stable_diffusion(str(folder), torch.float32, local_files_only=True)[0] is not None
+    hub = tmp_path / "hub"
+    snapshot = hub / "models--owner--no-index" / "snapshots" / ("0" * 40)
+    shutil.copytree(folder, snapshot)
+    (hub / "models--owner--no-index" / "refs").mkdir()
+    (hub / "models--owner--no-index" / "refs" / "main").write_text("0" * 40)
+    monkeypatch.setattr(huggingface_hub.constants, "HF_HUB_CACHE", str(hub))
+    assert diffusers_model_present("owner/no-index")
+    shutil.rmtree(folder / "vae")  # a part loading reads is still needed
+    assert not diffusers_model_present(str(folder))
+
+
 def test_a_single_file_checkpoint_is_told_to_be_converted_not_missing(tmp_path):
     """A single-file Stable Diffusion checkpoint (what many tools save) had been told "no folder <the file>"."""
     checkpoint = tmp_path / "v1-5-pruned.safetensors"

@@ -76,7 +76,7 @@ def test_a_diffusion_model_is_present_only_whole_in_a_folder_or_the_hub_cache(tm
     assert diffusers_model_present("owner/whole")
     bin_weights = [name.replace(".safetensors", ".bin") for name in WHOLE_SD]  # the older weights format
     assert diffusers_model_present(folder("bin", bin_weights))
-    for i, lacking in enumerate(WHOLE_SD):
+    for i, lacking in enumerate(WHOLE_SD[1:]):  # model_index.json, which loading does not read, is not needed
         files = [name for name in WHOLE_SD if name != lacking]
         assert not diffusers_model_present(folder(f"lacks-{i}", files)), lacking
         hub_cache(f"owner/lacks-{i}", *files)

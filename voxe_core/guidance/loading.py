@@ -148,16 +148,19 @@ def diffusers_model_present(model: str) -> bool:
     not enough: a download cut short leaves it in the cache's snapshot without the
     weights that had not arrived, and the model would fail only when a job loads it.
     Nor is one shard of a sharded component: its index arrives before the shards it names.
+    The parts are :func:`missing_parts`', those loading reads: a folder without ``model_index.json`` had been
+    reported missing by the workers while the CLI loaded it.
     """
-    index = model_file(model, "model_index.json")
-    if index is None:
+    config = model_file(model, "unet/config.json")
+    if config is None:
         return False
-    return not missing_parts(os.path.dirname(index))  # the local folder, or the cached snapshot of the hub's revision
+    # the local folder, or the cached snapshot of the hub's revision
+    return not missing_parts(os.path.dirname(os.path.dirname(config)))
 
 
 def missing_parts(folder: str) -> list[str]:
-    """The parts of the diffusers-layout model in ``folder`` that are not there: each file of :data:`DIFFUSERS_FILES`
-    by its path, and "weights in <component>/" for each of :data:`WEIGHTED_COMPONENTS` without them (sharded: every
+    """The parts of the diffusers-layout model in ``folder`` that loading reads and are not there: each file of
+    :data:`DIFFUSERS_FILES` but ``model_index.json`` (loading reads the components alone) by its path, and "weights in <component>/" for each of :data:`WEIGHTED_COMPONENTS` without them (sharded: every
     shard of every ``*.index.json``). A variant's weights alone (``diffusion_pytorch_model.fp16.safetensors``, what a
     download of the fp16 files leaves) are not the component's: loading reads no variant, and had failed on them with
     "no file named diffusion_pytorch_model.bin found in directory <the model's folder>", the model counted whole."""
@@ -177,7 +180,8 @@ def missing_parts(folder: str) -> list[str]:
         return f"weights in {component}/" + (f" (only {', '.join(variants)}: a variant's, which loading does not "
                                              "read)" if variants and not indexes else "")
 
-    return ([name for name in DIFFUSERS_FILES if not os.path.isfile(os.path.join(folder, name))]
+    return ([name for name in DIFFUSERS_FILES
+             if name != "model_index.json" and not os.path.isfile(os.path.join(folder, name))]
             + [part for component in WEIGHTED_COMPONENTS if (part := weights_missing(component)) is not None])
 
 
@@ -402,8 +406,8 @@ def load_stable_diffusion(model: str, dtype, local_files_only: bool | None = Non
         raise ModelNotAvailableError(not_available_message(model, FileNotFoundError(f"no folder {folder}")))
     # Named before loading: the libraries had said "no file named config.json found in directory <the folder>" for a
     # missing vae/, or built a default 512-wide text encoder without its config and failed on the weights' shapes,
-    # after a table of every layer on stderr. (model_index.json is left out: loading reads the components alone.)
-    if folder is not None and (missing := [part for part in missing_parts(folder) if part != "model_index.json"]):
+    # after a table of every layer on stderr.
+    if folder is not None and (missing := missing_parts(folder)):
         raise ModelNotAvailableError(not_available_message(model, FileNotFoundError(
             f"the folder lacks {', '.join(missing)}")))
     source = model if folder is None else folder
