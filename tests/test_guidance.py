@@ -796,6 +796,43 @@ def test_a_download_is_announced_with_its_size_and_nothing_local_is(tiny_path, t
     assert download_notice("owner/sd", False, sizes.get) == "downloading owner/sd (5.2 GB)"
 
 
+def test_a_revision_not_cached_is_announced_though_main_is_cached(tiny_path, tmp_path, monkeypatch):
+    """download_notice looked at main's snapshot whatever the revision loading asked for: main cached, a load of
+    revision "fp32-fix" downloaded the whole model without a word. The size asked is that revision's too."""
+    from huggingface_hub import HfApi, constants
+
+    from diffusers import UNet2DConditionModel
+
+    from voxe_core.guidance.loading import download_notice, load_stable_diffusion
+
+    monkeypatch.setattr(constants, "HF_HUB_CACHE", str(tmp_path / "cache"))
+    repo = tmp_path / "cache" / "models--owner--sd"
+    (repo / "refs").mkdir(parents=True)
+    (repo / "refs" / "main").write_text("abc123")
+    shutil.copytree(tiny_path, repo / "snapshots" / "abc123")
+    sizes = {"owner/sd": 5_210_000_000}
+    assert download_notice("owner/sd", False, sizes.get) is None
+    assert download_notice("owner/sd", False, sizes.get, revision="fp32-fix") == "downloading owner/sd (5.2 GB)"
+    assert download_notice("owner/sd", False, sizes.get, revision="abc123") is None  # the cached commit itself
+    asked = []
+
+    def model_info(self, model, revision=None, files_metadata=False):
+        asked.append(revision)
+        raise OSError("the hub is not reached in tests")
+
+    def from_pretrained(*args, **kwargs):
+        raise OSError("the hub is not reached in tests")
+
+    monkeypatch.setattr(HfApi, "model_info", model_info)
+    monkeypatch.setattr(UNet2DConditionModel, "from_pretrained", from_pretrained)
+    heard = []
+    with pytest.raises(ModelNotAvailableError):
+        load_stable_diffusion("owner/sd", torch.float32, local_files_only=False, revision="fp32-fix",
+                              on_message=heard.append)
+    assert heard == ["downloading owner/sd (size unknown)"]
+    assert asked == ["fp32-fix"]
+
+
 def test_a_downloads_announced_size_is_of_the_files_loading_fetches_not_the_whole_repository(monkeypatch):
     """The hub's listing of CompVis/stable-diffusion-v1-4 (its sizes, rounded): its single-file checkpoints, fp16,
     non-EMA and Flax weights and safety checker had been counted too, "(30.6 GB)" announced for a load that fetches
@@ -818,7 +855,7 @@ def test_a_downloads_announced_size_is_of_the_files_loading_fetches_not_the_whol
                "vae/diffusion_pytorch_model.safetensors": 334_643_268, "vae/diffusion_pytorch_model.bin": 334_707_217,
                "safety_checker/pytorch_model.bin": 1_216_064_769}
     info = SimpleNamespace(siblings=[SimpleNamespace(rfilename=name, size=size) for name, size in listing.items()])
-    monkeypatch.setattr(HfApi, "model_info", lambda self, model, files_metadata=False: info)
+    monkeypatch.setattr(HfApi, "model_info", lambda self, model, revision=None, files_metadata=False: info)
     fetched = sum(size for name, size in listing.items() if name.endswith(("json", ".txt")) or name in (
         "text_encoder/model.safetensors", "unet/diffusion_pytorch_model.safetensors",
         "vae/diffusion_pytorch_model.safetensors"))

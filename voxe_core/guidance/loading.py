@@ -140,8 +140,9 @@ def model_file(model: str, filename: str, revision: str | None = None) -> str | 
     return path if isinstance(path, str) else None
 
 
-def diffusers_model_present(model: str) -> bool:
-    """Whether the diffusers-layout ``model`` (a folder, or a hub id in the Hugging Face cache) is whole on this machine.
+def diffusers_model_present(model: str, revision: str | None = None) -> bool:
+    """Whether the diffusers-layout ``model`` (a folder, or a hub id in the Hugging Face cache, at ``revision``: its
+    main branch by default) is whole on this machine.
 
     Offline and cheap, no weights read: every file of :data:`DIFFUSERS_FILES` and a
     weights file of each of :data:`WEIGHTED_COMPONENTS`. ``model_index.json`` alone is
@@ -151,7 +152,7 @@ def diffusers_model_present(model: str) -> bool:
     The parts are :func:`missing_parts`', those loading reads: a folder without ``model_index.json`` had been
     reported missing by the workers while the CLI loaded it.
     """
-    config = model_file(model, "unet/config.json")
+    config = model_file(model, "unet/config.json", revision)
     if config is None:
         return False
     # the local folder, or the cached snapshot of the hub's revision
@@ -317,14 +318,14 @@ def load_clip_tokenizer(model: str, **kwargs):
         raise OSError(f"tokenizer files unreadable: {exc}") from exc
 
 
-def hub_download_bytes(model: str) -> int | None:
-    """Bytes of the files of hub model ``model`` loading fetches (:func:`files_loaded`), or None when the hub cannot
-    say (offline, unknown id). The whole repository's had been announced: CompVis/stable-diffusion-v1-4's single-file
+def hub_download_bytes(model: str, revision: str | None = None) -> int | None:
+    """Bytes of the files of hub model ``model`` (at ``revision``, main by default) loading fetches
+    (:func:`files_loaded`), or None when the hub cannot say (offline, unknown id). The whole repository's had been announced: CompVis/stable-diffusion-v1-4's single-file
     checkpoints, fp16, non-EMA and Flax weights, ten times what a load fetches."""
     from huggingface_hub import HfApi
 
     try:
-        info = HfApi().model_info(model, files_metadata=True)
+        info = HfApi().model_info(model, revision=revision, files_metadata=True)
     except loading_errors():
         return None
     sizes = {s.rfilename: s.size or 0 for s in info.siblings or []}
@@ -357,13 +358,14 @@ def files_loaded(names: list[str]) -> list[str]:
     return chosen
 
 
-def download_notice(model: str, local_files_only: bool,
-                    size_of: Callable[[str], int | None] = hub_download_bytes) -> str | None:
+def download_notice(model: str, local_files_only: bool, size_of: Callable[[str], int | None] | None = None,
+                    revision: str | None = None) -> str | None:
     """What a user should see before ``model`` is fetched from the hub; None when nothing will be downloaded.
 
-    A download happens only for a hub id that is not whole in the local cache (:func:`diffusers_model_present`)
-    while downloads are allowed.
-    ``size_of`` asks the hub for the model's bytes (a parameter so it can be given another source).
+    A download happens only for a hub id whose ``revision`` (main by default) is not whole in the local cache
+    (:func:`diffusers_model_present`) while downloads are allowed: a revision not cached had been fetched unannounced
+    where main was. ``size_of`` asks the hub for the model's bytes (:func:`hub_download_bytes` of that revision by
+    default; a parameter so it can be given another source).
 
     Examples:
         >>> download_notice("owner/model", local_files_only=False, size_of=lambda model: 5_210_000_000)
@@ -371,9 +373,9 @@ def download_notice(model: str, local_files_only: bool,
         >>> download_notice("owner/model", local_files_only=True) is None
         True
     """
-    if local_files_only or local_path(model) is not None or diffusers_model_present(model):
+    if local_files_only or local_path(model) is not None or diffusers_model_present(model, revision):
         return None
-    size = size_of(model)
+    size = size_of(model) if size_of is not None else hub_download_bytes(model, revision)
     return f"downloading {model} ({size / 1e9:.1f} GB)" if size else f"downloading {model} (size unknown)"
 
 
@@ -414,7 +416,7 @@ def load_stable_diffusion(model: str, dtype, local_files_only: bool | None = Non
     fault = component_config_fault(model, revision)
     if fault is not None:
         raise ModelNotAvailableError(not_available_message(model, ValueError(fault)))
-    notice = download_notice(model, bool(local_files_only)) if on_message is not None else None
+    notice = download_notice(model, bool(local_files_only), revision=revision) if on_message is not None else None
     if notice is not None:
         on_message(notice)
 
