@@ -1341,6 +1341,24 @@ def test_safetensors_outputs_follow_the_umask_as_other_outputs(sphere_file, tmp_
     assert (tmp_path / "tiny" / "model_index.json").stat().st_mode & 0o777 == 0o666 & ~umask
 
 
+def test_build_tiny_model_refuses_a_folder_holding_another_model_and_rebuilds_its_own(tmp_path, capsys):
+    """Built into a folder holding another model, its files had been mixed with those: a sharded UNet's index stayed
+    beside the new weights, and loading read the other model's shards."""
+    other = tmp_path / "other"
+    (other / "unet").mkdir(parents=True)
+    index = other / "unet" / "diffusion_pytorch_model.safetensors.index.json"
+    index.write_text('{"weight_map": {"conv_in.weight": "diffusion_pytorch_model-00001-of-00002.safetensors"}}')
+    assert main(["build-tiny-model", str(other)]) == 2
+    assert f"{other} already holds unet, not a tiny model: the tiny model's files would be mixed with those; give " \
+           "an empty or new folder" in capsys.readouterr().err
+    assert sorted(path.name for path in other.rglob("*")) == ["diffusion_pytorch_model.safetensors.index.json", "unet"]
+    tiny = tmp_path / "tiny"
+    assert main(["build-tiny-model", str(tiny), "--seed", "1"]) == 0
+    first = (tiny / "unet" / "diffusion_pytorch_model.safetensors").read_bytes()
+    assert main(["build-tiny-model", str(tiny)]) == 0  # its own, rebuilt in place
+    assert (tiny / "unet" / "diffusion_pytorch_model.safetensors").read_bytes() != first
+
+
 def test_bad_data_is_said_as_a_dataset_error_and_a_bad_grid_as_an_error(tmp_path, capsys):
     """The one-line message names which input was bad: found without importing the dataset module where no command
     had (``voxe status`` must not load torch to say its error)."""

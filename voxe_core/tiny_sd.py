@@ -52,6 +52,8 @@ TINY_VOCAB_WORDS: tuple[str, ...] = (
 _BOS = "<|startoftext|>"
 _EOS = "<|endoftext|>"
 _MAX_LENGTH = 77
+TINY_MODEL_NAME = "voxe-tiny-stable-diffusion (SMOKE-TEST MODEL, random weights)"
+"""The ``_name_or_path`` of a tiny model's model_index.json: what tells a folder holding one (rebuilt in place)."""
 
 
 def _bytes_to_unicode() -> dict[int, str]:
@@ -166,6 +168,10 @@ def build_tiny_stable_diffusion(path, seed: int = 0) -> Path:
     ``text_encoder/``, ``tokenizer/``, ``scheduler/``) and loads with
     ``StableDiffusionGuidance.from_pretrained(path)`` exactly like real
     weights. Images are 64x64 (16x16x4 latents).
+
+    A ``path`` holding anything but a tiny model (an earlier build, rebuilt) is refused, FileExistsError: the
+    build had written its files among another model's (a stale sharded index beside the new weights, which loading
+    then read). Refused, not emptied: the folder may be the user's real weights.
     """
     import diffusers
     from diffusers import AutoencoderKL, DDIMScheduler, UNet2DConditionModel
@@ -173,6 +179,10 @@ def build_tiny_stable_diffusion(path, seed: int = 0) -> Path:
 
     root = Path(path)
     root.mkdir(parents=True, exist_ok=True)
+    if not _tiny_model(root) and (held := sorted(entry.name for entry in root.iterdir())):
+        raise FileExistsError(f"{root} already holds {', '.join(held[:5])}{', ...' if len(held) > 5 else ''}, not a "
+                              "tiny model: the tiny model's files would be mixed with those; give an empty or new "
+                              "folder")
 
     vocab = _write_tokenizer(root / "tokenizer", TINY_VOCAB_WORDS)
 
@@ -238,7 +248,7 @@ def build_tiny_stable_diffusion(path, seed: int = 0) -> Path:
     model_index = {
         "_class_name": "StableDiffusionPipeline",
         "_diffusers_version": diffusers.__version__,
-        "_name_or_path": "voxe-tiny-stable-diffusion (SMOKE-TEST MODEL, random weights)",
+        "_name_or_path": TINY_MODEL_NAME,
         "feature_extractor": [None, None],
         "image_encoder": [None, None],
         "requires_safety_checker": False,
@@ -260,3 +270,13 @@ def build_tiny_stable_diffusion(path, seed: int = 0) -> Path:
     for weights in root.rglob("*.safetensors"):  # safetensors renames its own 0600 files into place
         weights.chmod(mode)
     return root
+
+
+def _tiny_model(root: Path) -> bool:
+    """Whether the folder ``root`` holds a tiny model :func:`build_tiny_stable_diffusion` wrote (its model_index.json
+    names it :data:`TINY_MODEL_NAME`)."""
+    try:
+        index = json.loads((root / "model_index.json").read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return False
+    return isinstance(index, dict) and index.get("_name_or_path") == TINY_MODEL_NAME
