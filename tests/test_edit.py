@@ -614,10 +614,24 @@ def test_a_guidance_overflowing_across_a_resume_stops_where_an_uninterrupted_run
 
 
 def test_a_guidance_overflowing_in_part_is_reported_and_edits_on(small_sphere, tiny_guidance, monkeypatch):
+    """The zeroed share had been in the progress info alone, which neither a job nor the CLI shows: an edit losing a
+    quarter of its gradient on every step ran silently. Its first step is said once, as a warning."""
     _overflowing_unet(tiny_guidance, monkeypatch, 0)
-    reports, steps = [], edit_module.MAX_NONFINITE_GUIDANCE_STEPS + 1
-    edit(small_sphere, "a dog", tiny_guidance, EditConfig(iterations=steps, render_size=16), _collect(reports))
+    reports, warnings, steps = [], [], edit_module.MAX_NONFINITE_GUIDANCE_STEPS + 1
+    callbacks = Callbacks(on_progress=reports.append, on_warning=lambda stage, text: warnings.append((stage, text)))
+    edit(small_sphere, "a dog", tiny_guidance, EditConfig(iterations=steps, render_size=16), callbacks)
     assert [r.info["sds_nonfinite_fraction"] for r in reports] == [0.25] * steps
+    assert warnings == [("edit", "iteration 1: 25% of the guidance's SDS gradient entries were infinite or NaN and were "
+                                 "zeroed (a float16 (fp16) UNet overflowing? run the guidance in float32 or bfloat16); "
+                                 "the edit goes on (it stops after 10 steps in a row with every entry so), said once (each "
+                                 "step's share: its sds_nonfinite_fraction)")]
+
+
+def test_a_guidance_that_never_overflows_warns_of_nothing(small_sphere, tiny_guidance):
+    warnings = []
+    edit(small_sphere, "a dog", tiny_guidance, EditConfig(iterations=2, render_size=16),
+         Callbacks(on_warning=lambda stage, text: warnings.append(text)))
+    assert warnings == []
 
 
 def test_a_zero_iteration_edit_writes_a_checkpoint_with_zero_moments(small_sphere, tmp_path):

@@ -560,7 +560,9 @@ def edit(
     checkpoint is to be written, a preview rendered or the grid returned (a finite loss whose gradient overflowed);
     and a guidance whose SDS gradient was wholly non-finite
     (``nonfinite_fraction`` 1) for :data:`MAX_NONFINITE_GUIDANCE_STEPS` steps in a row, the last one's progress not
-    reported (a float16 UNet overflowing: G_e would take no more SDS steps).
+    reported (a float16 UNet overflowing: G_e would take no more SDS steps). The first step whose SDS gradient had
+    any entry zeroed is said once, through ``callbacks.warning``: a partly overflowing UNet (a share of the gradient
+    lost on every step) had been said only in the progress info, which neither a job nor the CLI shows.
     """
     if not str(prompt).strip():
         raise ValueError("the edit prompt is empty")
@@ -627,6 +629,7 @@ def edit(
     # Consecutive steps whose SDS gradient was wholly non-finite, carried across a resume (in the checkpoint's header):
     # restarted there, a run overflowing on every step that was resumed more often than every 10 steps never stopped.
     nonfinite_steps = 0
+    zeroed_said = False  # whether the first step with zeroed SDS gradient entries was said (once a run)
     if resume_from is not None:
         tensors, meta = load_edit_checkpoint(resume_from)
         if tuple(tensors["features"].shape[:3]) != initial_grid.resolution:  # (its header said otherwise, or nothing)
@@ -813,6 +816,13 @@ def edit(
                     f"the edit diverged at iteration {done}: the guidance's SDS gradient was infinite or NaN in every "
                     f"entry for the last {nonfinite_steps} iterations (zeroed, so the edit stood still): a float16 "
                     "(fp16) UNet overflowing; run the guidance in float32 or bfloat16")
+            if nonfinite_value > 0 and not zeroed_said:  # (in the progress info alone, no job or CLI user had seen it)
+                zeroed_said = True
+                callbacks.warning("edit", f"iteration {done}: {nonfinite_value * 100:.3g}% of the guidance's SDS "
+                                          "gradient entries were infinite or NaN and were zeroed (a float16 (fp16) UNet "
+                                          "overflowing? run the guidance in float32 or bfloat16); the edit goes on (it stops "
+                                          f"after {MAX_NONFINITE_GUIDANCE_STEPS} steps in a row with every entry so), "
+                                          "said once (each step's share: its sds_nonfinite_fraction)")
             t_lo, t_hi = config.schedule.bounds(iteration, T)
             callbacks.progress(Progress(
                 "edit", done, config.iterations,
