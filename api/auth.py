@@ -427,7 +427,11 @@ def idempotency_key(value: Annotated[str | None, Header(
     except UnicodeDecodeError:
         raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT,
                             f"{IDEMPOTENCY_HEADER} header must be UTF-8 text") from None
-    if not value or len(value) > 255:
+    if not value:  # "got 0" had counted what was left once the spaces sent were stripped, not what was sent
+        raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT,
+                            f"{IDEMPOTENCY_HEADER} header is blank (empty or only spaces): send a key of 1-255 "
+                            "characters, or leave the header out")
+    if len(value) > 255:
         raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT,
                             f"{IDEMPOTENCY_HEADER} header must be 1-255 characters, got {len(value)}")
     return value

@@ -1936,6 +1936,23 @@ def test_an_idempotency_key_sent_twice_is_a_422_and_creates_nothing(client):
                                                           "Idempotency-Key": "a"}).status_code == 201
 
 
+def test_a_blank_idempotency_key_is_told_blank_not_its_length(client):
+    """An Idempotency-Key of only spaces had been answered "must be 1-255 characters, got 0": the client had sent
+    three characters, and 0 counted what was left once they were stripped. A blank key is told blank now; an
+    over-long one its length, as before."""
+    scene_id = client.get(f"/v1/jobs/{_job_row()}").json()["scene_id"]
+    body = {"scene_id": scene_id, **JOB}
+    for blank in ("", "   ", "\t"):
+        response = client.post("/v1/jobs", json=body, headers={"Idempotency-Key": blank})
+        assert response.status_code == 422, (blank, response.text)
+        assert response.json()["detail"] == ("Idempotency-Key header is blank (empty or only spaces): send a key of "
+                                             "1-255 characters, or leave the header out")
+    response = client.post("/v1/jobs", json=body, headers={"Idempotency-Key": "k" * 256})
+    assert response.status_code == 422
+    assert response.json()["detail"] == "Idempotency-Key header must be 1-255 characters, got 256"
+    assert client.get("/v1/jobs").json()["total"] == 1  # only _job_row's
+
+
 def test_conditional_headers_read_every_line_and_refuse_a_bare_tag(client, root):
     """An If-Match or If-None-Match sent as several lines (RFC 9110 §5.3) had been read from its first line only: the
     current ETag on the second line got a 412, or a whole download for a 304. A bare tag (the listing's sha256, not
