@@ -73,12 +73,10 @@ class UploadLimit:
 
     @staticmethod
     async def _reject(send, limit: _Limit):
-        import json
-
-        body = json.dumps({"detail": _TooLarge(limit).detail}).encode()
-        await send({"type": "http.response.start", "status": 413,
-                    "headers": [(b"content-type", b"application/json"), (b"content-length", str(len(body)).encode())]})
-        await send({"type": "http.response.body", "body": body})
+        """The 413, rendered as every other answer is (JSONResponse's compact JSON)."""
+        response = JSONResponse({"detail": _TooLarge(limit).detail}, status_code=413)
+        await send({"type": "http.response.start", "status": 413, "headers": response.raw_headers})
+        await send({"type": "http.response.body", "body": response.body})
 
 
 class SecurityHeaders:

@@ -934,6 +934,26 @@ def test_upload_over_the_limit_is_413(root, monkeypatch, dataset):
         assert client.get("/v1/scenes").json()["total"] == 0
 
 
+def test_the_413_is_serialised_as_every_other_answer(root, monkeypatch):
+    """The upload limit's 413 had been written with json.dumps' spaces ({"detail": "..."}), unlike every other answer
+    (FastAPI's compact JSON): a client comparing bodies, or a cache keying on them, saw two forms of one API."""
+    monkeypatch.setenv("VOXE_MAX_JSON_BODY_BYTES", "100")
+    _reset()
+    from api.main import create_app
+
+    with TestClient(create_app()) as client:
+        for content in (b"x" * 200, iter([b"x" * 60, b"x" * 60])):  # by Content-Length; counted while streaming
+            response = client.post("/v1/jobs", content=content, headers={"content-type": "application/json"})
+            detail = ("JSON body (any body but an upload's multipart form) over the limit of 100 bytes "
+                      "(VOXE_MAX_JSON_BODY_BYTES)")
+            assert response.status_code == 413
+            assert response.content == json.dumps({"detail": detail}, separators=(",", ":")).encode()
+            assert response.headers["content-type"] == "application/json"
+            assert int(response.headers["content-length"]) == len(response.content)
+        other = client.get("/v1/jobs/nope")
+        assert other.status_code == 404 and b'{"detail":"' in other.content  # the form every answer has
+
+
 # ------------------------------------------------------------------------------------------ jobs
 @pytest.mark.parametrize("body, location", [
     ({"bogus": 1}, ["body", "bogus"]),
