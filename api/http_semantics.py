@@ -140,7 +140,7 @@ def refuse_encoded(request: Request) -> None:
     body: it is not UTF-8" (an upload's, "Invalid multipart data."), a plain one labelled gzip read as unencoded."""
     sent = ", ".join(request.headers.getlist("content-encoding"))
     if sends_body(request) and any(coding.strip().lower() not in ("", "identity") for coding in sent.split(",")):
-        raise HTTPException(415, f"the body was sent with Content-Encoding {listed([sent], width=ID_SHOWN)}: send it "
+        raise HTTPException(415, f"the body was sent with Content-Encoding {listed([as_sent(sent)], width=ID_SHOWN)}: send it "
                                  "unencoded (only identity is read)", headers={"Accept-Encoding": "identity"})
 
 
@@ -206,6 +206,16 @@ def combined(lines: list[str] | None) -> str | None:
     FastAPI reads a ``str`` header's first line only, where a proxy may read the last: the bytes of one range had
     been served as those of the other. Combined, two ranges are several (the whole file)."""
     return None if lines is None else ", ".join(lines)
+
+
+def as_sent(value: str) -> str:
+    """A header's value as the client wrote it, for quoting in a message: the server reads a header's bytes as
+    Latin-1, one character a byte, so UTF-8 text was quoted garbled (a full-width "３" as 'ï¼\\x93'); bytes that are
+    not UTF-8 are quoted as read."""
+    try:
+        return value.encode("latin-1").decode("utf-8")
+    except UnicodeError:
+        return value
 
 
 def only_line(header: str, lines: list[str]) -> str | None:

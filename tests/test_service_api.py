@@ -1919,6 +1919,26 @@ def test_a_long_cursor_or_last_event_id_refused_is_quoted_said_cut(client):
         422, f"Last-Event-ID must be the id of an event (an integer from 0 to {2**63 - 1}), not '{'1' * 40}...'")
 
 
+def test_a_header_refused_is_quoted_as_the_client_wrote_it_not_as_latin_1(client, root):
+    """The server reads a header's bytes as Latin-1: a Last-Event-ID of a full-width "３" (UTF-8) had been quoted in
+    its 422 as 'ï¼\\x93', a Range's, If-Range's or If-Match's text so in their 416/422s. They are quoted as sent;
+    bytes that are not UTF-8 are quoted as read."""
+    refused = client.get(f"/v1/jobs/{_job_row()}/events", headers={"Accept": "text/event-stream",
+                                                                     "Last-Event-ID": "３".encode()})
+    assert (refused.status_code, refused.json()["detail"]) == (
+        422, f"Last-Event-ID must be the id of an event (an integer from 0 to {2**63 - 1}), not '３'")
+    not_utf8 = client.get(f"/v1/jobs/{_job_row()}/events", headers={"Accept": "text/event-stream",
+                                                                      "Last-Event-ID": b"\xe9"})
+    assert not_utf8.status_code == 422 and not_utf8.json()["detail"].endswith(", not 'é'")
+    _, url = _published_render(root)
+    said = {"Range": "malformed range 'bytes=é-'", "If-Match": "If-Match 'é' is not an entity tag",
+            "If-Range": "If-Range 'é' is neither"}
+    for header, words in said.items():
+        sent = {"Range": "bytes=4000-", header: ("bytes=é-" if header == "Range" else "é").encode()}
+        answer = client.get(url, headers=sent)
+        assert answer.status_code in (416, 422) and words in answer.json()["detail"], (header, answer.text)
+
+
 def test_a_scene_deleted_by_another_request_meanwhile_is_a_404_not_a_second_204(client, monkeypatch):
     """Two DELETEs of one scene at once had both answered 204: the second read the scene, waited for the first's lock,
     found its row gone and deleted nothing (a warning in the log). It is a 404, as any DELETE after the first is."""

@@ -11,7 +11,7 @@ from fastapi.responses import StreamingResponse
 from sqlalchemy import select
 
 from api.deps import CurrentKey, SessionDep, StorageDep
-from api.http_semantics import ID_SHOWN, StrictRoute, combined, only_line
+from api.http_semantics import ID_SHOWN, StrictRoute, as_sent, combined, only_line
 from api.schemas import ArtifactOut
 from api.services.jobs import get_job
 from voxe_service.models import Artifact
@@ -67,7 +67,7 @@ def parse_range(header: str | None, size: int) -> tuple[int, int] | None:
     naming the range cut short (a header of thousands of digits had come back whole in the message)."""
     if not header:
         return None
-    sent = listed([header], width=60)
+    sent = listed([as_sent(header)], width=60)
     unit, _, spec = header.partition("=")
     if unit.strip().lower() != "bytes":
         return None  # unknown unit: ignore the header (RFC 9110 §14.2)
@@ -112,7 +112,7 @@ def entity_tags(header: str, lines: list[str] | None) -> set[str] | None:
     elements = [element.strip() for element in _LIST_ELEMENT.findall(combined(lines)) if element.strip()]
     if bad := [element for element in elements if element != "*" and not _ENTITY_TAG.fullmatch(element)]:
         raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT,
-                            f"{header} {listed(bad, width=70)} is not an entity tag: {_SEND_ETAG[header]}")
+                            f"{header} {listed([as_sent(tag) for tag in bad], width=70)} is not an entity tag: {_SEND_ETAG[header]}")
     if "*" in elements and set(elements) != {"*"}:  # (* on two lines, one list, had been told so too)
         raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT,
                             f"{header} lists * with entity tags: * (any version) stands alone")
@@ -134,7 +134,7 @@ def range_validator(if_range_lines: list[str], range_: str | None) -> str | None
     validator = if_range.strip()
     if not _ENTITY_TAG.fullmatch(validator) and not _HTTP_DATE.fullmatch(validator):
         raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT,
-                            f"If-Range {listed([if_range], width=70)} is neither an entity tag nor a date: "
+                            f"If-Range {listed([as_sent(if_range)], width=70)} is neither an entity tag nor a date: "
                             f"{_SEND_ETAG['If-Range']}")
     return validator
 

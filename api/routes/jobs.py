@@ -12,7 +12,7 @@ from sqlalchemy import func, select
 from api.auth import mark_replayed, replayed_answer
 from api.deps import CurrentKey, IdempotencyKey, QueueDep, SessionDep, SettingsDep
 from api.events import SSE_MEDIA_TYPE
-from api.http_semantics import KEYS_OWN, StrictRoute, combined, only_line
+from api.http_semantics import KEYS_OWN, StrictRoute, as_sent, combined, only_line
 from api.paging import PageQuery, page_query
 from api.schemas import (
     JobCreate, JobEventOut, JobOut, JobReconstruction, JobState, Models, Page, WebhookDeliveryOut,
@@ -230,7 +230,7 @@ def _event_id(value: str | None) -> int:
     if not (text.isascii() and text.isdigit()) or len(digits) > 19 or int(digits) > MAX_EVENT_ID:  # "²".isdigit()
         raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT,
                             f"Last-Event-ID must be the id of an event (an integer from 0 to {MAX_EVENT_ID}), "
-                            f"not {listed([value])}")
+                            f"not {listed([as_sent(value)])}")
     return int(digits)
 
 
