@@ -47,6 +47,10 @@ _NAMING_CHARACTER = rf"[^{_WHITESPACE}\x00-\x23\x25-\x2f\x3a-\x40\x5b-\x60\x7b-\
 TEXT_PATTERN = rf"^{_ALLOWED}*{_NAMING_CHARACTER}{_ALLOWED}*$"
 # An edit word's: something but whitespace (whether it names anything, a symbol as "🎩" does, is the core's rule).
 EDIT_WORD_PATTERN = rf"^{_ALLOWED}*[^{_WHITESPACE}\x00-\x08\x0e-\x1b\x7f-\x84\x86-\x9f]{_ALLOWED}*$"
+# A scene's name sent in the upload form: no control character (it is one line of display text), something but
+# whitespace (scene_name).
+_NOT_IN_NAME = r"\x00-\x1f\x7f-\x9f"
+SCENE_NAME_PATTERN = rf"^[^{_NOT_IN_NAME}]*[^{_WHITESPACE}{_NOT_IN_NAME}][^{_NOT_IN_NAME}]*$"
 # A webhook URL's: no whitespace, spelt out as str.split()'s and ECMA-262's \s (\ufeff): its \s had been read apart by
 # the document's readers (no \x85, \ufeff) and the server's check (\x85, no \ufeff). (NUL and a lone surrogate are
 # every string's rule: Strict.) The scheme in any case (RFC 3986 §3.1), as the checks and the sender read it: "HTTP://"
@@ -243,6 +247,21 @@ def clean_text(value: str, what: str, need_words: bool = True) -> str:
                          "not)")
     if not value:
         raise ValueError(f"{what} is blank")
+    return value
+
+
+def scene_name(value: str | None) -> str | None:
+    """The upload form's ``name`` as sent, or an error saying what it holds that a name cannot: a control character
+    (a newline or ESC had been stored and listed as sent, where a name taken from the file's has them stripped) or
+    nothing but whitespace (a name of spaces had been stored, so the scene listed as nameless). Refused, not cleaned:
+    the user chose this text, and a scene stored under other words would not be found by the name they sent."""
+    if value is None:
+        return None
+    if any(unicodedata.category(c) == "Cc" for c in value):
+        raise ValueError("the name contains control characters (a newline, tab or escape, say): send one line of text")
+    if not value.strip():
+        raise ValueError("the name is blank: send one with something but spaces, or leave it out for the default "
+                         "(the file's name)")
     return value
 
 

@@ -911,6 +911,23 @@ def test_upload_needs_exactly_one_source(client):
     assert response.status_code == 422 and response.json()["detail"][0]["loc"] == ["body", "name"]
 
 
+def test_a_scene_name_sent_with_control_characters_or_blank_is_a_422_naming_it(client):
+    """A name sent in the form kept a newline or ESC (stored and listed as sent, where a name taken from the zip's file
+    name has them stripped), and a name of spaces was stored. Both are a 422 naming the field and saying what is
+    wrong; a name of any script, with spaces inside, is taken as sent."""
+    for name, said in (("two\nlines", "contains control characters"), ("\x1b[31mred", "contains control characters"),
+                       ("tab\there", "contains control characters"), ("no\x00thing", "contains control characters"),
+                       ("   ", "is blank"), ("\u3000", "is blank")):
+        response = client.post("/v1/scenes", files={"name": (None, name)})
+        assert response.status_code == 422, name
+        (error,) = response.json()["detail"]
+        assert error["loc"] == ["body", "name"] and f"the name {said}" in error["msg"], (name, error)
+    for name in ("a café 🎩", " padded "):  # (then refused for sending no dataset: the name passed)
+        response = client.post("/v1/scenes", files={"name": (None, name)})
+        assert response.status_code == 422 and "either one zip" in response.json()["detail"], name
+    assert client.get("/v1/scenes").json()["total"] == 0
+
+
 def test_upload_over_the_limit_is_413(root, monkeypatch, dataset):
     monkeypatch.setenv("VOXE_MAX_UPLOAD_BYTES", "1000")
     _reset()

@@ -5,6 +5,7 @@ from __future__ import annotations
 from typing import Annotated, Literal
 
 from fastapi import APIRouter, Depends, File, Form, HTTPException, Request, Response, UploadFile, params, status
+from pydantic import AfterValidator
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from api.auth import mark_replayed, replayed_answer
@@ -12,7 +13,7 @@ from api.deps import CurrentKey, IdempotencyKey, QueueDep, SessionDep, SettingsD
 from api.http_semantics import (FORM_MEDIA_TYPE, StrictRoute, media_type, refuse_encoded, sends_body,
                                 takes_several)
 from api.paging import PageQuery, page_query
-from api.schemas import Page, ReconstructionOut, SceneOut
+from api.schemas import SCENE_NAME_PATTERN, Page, ReconstructionOut, SceneOut, scene_name
 from api.services import scenes
 from api.uploads import too_many_files
 from voxe_service.settings import get_settings
@@ -136,9 +137,11 @@ def create_scene(
     files: list[UploadFile] | None = File(
         None, description="alternatively the dataset's files, each named by its path in the dataset folder "
                           "(e.g. transforms.json, images/0001.png)"),
-    name: str | None = Form(None, max_length=255, pattern=r"^[^\x00]*$",
-                            description="display name (default: the zip's file name, or the mesh's, or the one folder "
-                                        "the files are in; else scene-<id>); no NUL character"),
+    name: Annotated[str | None, Form(
+        max_length=255, json_schema_extra={"pattern": SCENE_NAME_PATTERN},
+        description="display name (default: the zip's file name, or the mesh's, or the one folder the files are in; "
+                    "else scene-<id>); one line of text: no control characters, not blank"),
+        AfterValidator(scene_name)] = None,  # (after the Form: with the Form as the default, FastAPI drops it)
     mesh_shading: Literal["auto", "baked", "none"] | None = Form(
         None, description="a mesh upload's colour: baked bakes a fixed key light and ambient occlusion into it, none "
                           "keeps the bare albedo, auto (the default) bakes it only for a mesh without texture or "
