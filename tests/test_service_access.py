@@ -1475,3 +1475,24 @@ def test_a_job_canceled_once_no_run_renews_its_hold_ends_at_the_reapers_next_pas
         ended = job_row(job_id)
         assert (ended.state, ended.message, ended.run_token) == ("canceled", "canceled: asked during edit", None)
     assert (job_row(held).state, job_row(held).cancel_requested) == ("running", True)
+
+
+def test_readyz_shows_its_details_only_to_a_key_holder(auth_client, root):  # noqa: F811 - the fixture
+    """/readyz needs no key (a load balancer's probe), and showed anyone the storage path, the broker's URL, worker
+    hostnames and the errors' text. With authentication on, a caller without a live key gets the status code, the
+    status and which check failed; a key's holder (the operator) every detail, as with authentication off."""
+    anonymous = auth_client.get("/readyz")
+    assert anonymous.status_code == 503  # no worker here
+    assert anonymous.json() == {
+        "status": "not ready",
+        "checks": {"database": {"ok": True}, "broker": {"ok": True}, "storage": {"ok": True}, "worker": {"ok": False}},
+        "details": "send an API key for each check's details and the models' availability"}
+    assert str(root) not in anonymous.text
+    for wrong in (bearer("voxe_000000000000_" + "x" * 43), {"X-API-Key": "garbage"}):
+        assert auth_client.get("/readyz", headers=wrong).json() == anonymous.json()
+    _, token = _create_key("operator")
+    detailed = auth_client.get("/readyz", headers=bearer(token))
+    assert detailed.status_code == 503
+    checks = detailed.json()["checks"]
+    assert checks["worker"] == {"ok": False, "method": "database heartbeat", "workers": []}
+    assert "url" in checks["broker"] and "backend" in checks["storage"] and "model_availability" in detailed.json()

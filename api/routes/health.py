@@ -4,10 +4,11 @@ from __future__ import annotations
 
 import time
 from concurrent.futures import ThreadPoolExecutor
-from fastapi import APIRouter
+from fastapi import APIRouter, Request
 from fastapi.responses import JSONResponse
 from sqlalchemy import text
 
+from api.auth import key_of_token, presented_token, refusal
 from api.deps import QueueDep, SettingsDep, StorageDep
 from voxe_service.db import session_scope
 from voxe_service.model_inventory import ROLES, live_worker_models
@@ -75,9 +76,25 @@ def _model_report(settings: Settings) -> dict:
     return report
 
 
+def _shown_details(request: Request, settings: Settings) -> bool:
+    """Whether /readyz shows this caller its checks' details: authentication off, or a live key presented. They name
+    the deployment's internals (the storage path or bucket, the broker's URL, worker hostnames, the errors' text),
+    and /readyz needs no key: a load balancer needs only the status and which check failed."""
+    if not settings.auth_enabled:
+        return True
+    if not (token := presented_token(request)):
+        return False
+    try:
+        with session_scope() as session:
+            return refusal(key_of_token(session, token), token) is None
+    except Exception:  # noqa: BLE001 - no database to check the key in: the checks say so
+        return False
+
+
 @router.get("/readyz", summary="Readiness: database, broker, storage and at least one worker",
-            responses={503: {"description": "a dependency is down; the body says which"}})
-def readyz(settings: SettingsDep, queue: QueueDep, storage: StorageDep):
+            responses={503: {"description": "a dependency is down; the body says which (with authentication on, "
+                                            "its details only to a caller presenting a live key)"}})
+def readyz(request: Request, settings: SettingsDep, queue: QueueDep, storage: StorageDep):
     celery = queue.app
     checks = {
         "database": lambda: _check_db(),
@@ -105,6 +122,11 @@ def readyz(settings: SettingsDep, queue: QueueDep, storage: StorageDep):
         availability = _model_report(settings)
     except Exception as exc:  # noqa: BLE001 - the database check above says why
         availability = {"error": f"{type(exc).__name__}: {exc}"}
+    if not _shown_details(request, settings):
+        return JSONResponse({"status": "ready" if ready else "not ready",
+                             "checks": {name: {"ok": bool(result.get("ok"))} for name, result in results.items()},
+                             "details": "send an API key for each check's details and the models' availability"},
+                            status_code=200 if ready else 503)
     body = {
         "status": "ready" if ready else "not ready",
         "checks": results,
