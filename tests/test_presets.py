@@ -1719,6 +1719,31 @@ def test_an_export_whose_upload_fails_mid_mesh_set_lists_no_mesh_and_its_rerun_p
         assert hashlib.sha256(download.content).hexdigest() == artifacts[name]["sha256"]
 
 
+def test_an_export_whose_storage_refuses_the_turntable_gif_lists_neither_turntable_file(service, monkeypatch):
+    """turntable.mp4 and turntable.gif (one render of each frame feeds both) are one set, as the mesh formats are:
+    the storage refusing the GIF for good (access denied, no outage) had failed the job with turntable.mp4 listed
+    and stored, the GIF missing. Now the failed job lists neither and the storage keeps neither."""
+    import voxe_core.edit
+    from voxe_service.storage import StorageError, get_storage
+    from worker import runtime, tasks
+
+    client, scene_id = service
+    job_id = _reconstructed_job(client, scene_id, "relu_field", export={
+        "views": 1, "view_size": 16, "turntable_frames": 2, "turntable_size": 16, "gif": True, "mesh": False})["id"]
+    monkeypatch.setattr(runtime, "get_guidance", lambda *args: NO_MODEL)
+    monkeypatch.setattr(voxe_core.edit, "edit", lambda initial, *args, **kwargs: initial.clone_grid())
+    assert tasks.edit_task.apply(args=(job_id,)).get()["state"] == "done"
+    storage = get_storage(tasks.get_settings())
+    failing_uploads(monkeypatch, storage, "/turntable.gif",
+                    StorageError("S3 bucket 'voxe': AccessDenied when uploading"))
+    assert tasks.export_task.apply(args=(job_id,)).get()["state"] == "failed"
+    job = client.get(f"/v1/jobs/{job_id}").json()
+    assert (job["state"], job["error"]) == (
+        "failed", "export: StorageError: S3 bucket 'voxe': AccessDenied when uploading")
+    listed = {a["name"] for a in client.get(f"/v1/jobs/{job_id}/artifacts").json()}
+    assert listed == {"initial_grid.safetensors", "edited_grid.safetensors", "preview.png", "render_000.png"}
+    assert [key for key in storage.list(f"jobs/{job_id}/") if "turntable" in key] == []
+
 def test_the_export_renders_the_published_edit_not_a_superseded_runs_grid_left_in_its_scratch(service, monkeypatch,
                                                                                               tmp_path):
     """An edit run that stalled while another run took its job over has its grid refused, but the file stays in its

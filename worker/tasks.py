@@ -883,8 +883,8 @@ def _export(job: Job, settings, device: str, storage) -> str | None:
             first_frame = frame if first_frame is None else first_frame
             for writer in writers:
                 writer.append(frame)
-    for path in videos:
-        runtime.publish_artifact(job.id, path.name, path, "video", storage)
+    # One set, as the mesh formats: a storage refusing the GIF had failed the job listing the MP4 alone
+    runtime.publish_artifacts(job.id, [(path.name, path, "video") for path in videos], storage)
     if options.mesh:
         callbacks.callbacks.check_cancel("export")
         try:
