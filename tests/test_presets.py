@@ -1744,6 +1744,31 @@ def test_an_export_whose_storage_refuses_the_turntable_gif_lists_neither_turntab
     assert listed == {"initial_grid.safetensors", "edited_grid.safetensors", "preview.png", "render_000.png"}
     assert [key for key in storage.list(f"jobs/{job_id}/") if "turntable" in key] == []
 
+def test_an_export_whose_storage_refuses_one_view_lists_none_of_its_views(service, monkeypatch):
+    """The export's views (render_000.png ...) are one set, as the evaluation's rings are: the storage refusing
+    render_001.png for good (access denied, no outage) had failed the job with render_000.png listed and stored, a
+    ring of one view where three were asked for. Now the failed job lists none of them and the storage keeps none."""
+    import voxe_core.edit
+    from voxe_service.storage import StorageError, get_storage
+    from worker import runtime, tasks
+
+    client, scene_id = service
+    job_id = _reconstructed_job(client, scene_id, "relu_field", export={
+        "views": 3, "view_size": 16, "turntable_frames": 2, "turntable_size": 16, "gif": False, "mesh": False})["id"]
+    monkeypatch.setattr(runtime, "get_guidance", lambda *args: NO_MODEL)
+    monkeypatch.setattr(voxe_core.edit, "edit", lambda initial, *args, **kwargs: initial.clone_grid())
+    assert tasks.edit_task.apply(args=(job_id,)).get()["state"] == "done"
+    storage = get_storage(tasks.get_settings())
+    failing_uploads(monkeypatch, storage, "/render_001.png",
+                    StorageError("S3 bucket 'voxe': AccessDenied when uploading"))
+    assert tasks.export_task.apply(args=(job_id,)).get()["state"] == "failed"
+    job = client.get(f"/v1/jobs/{job_id}").json()
+    assert (job["state"], job["error"]) == (
+        "failed", "export: StorageError: S3 bucket 'voxe': AccessDenied when uploading")
+    listed = {a["name"] for a in client.get(f"/v1/jobs/{job_id}/artifacts").json()}
+    assert listed == {"initial_grid.safetensors", "edited_grid.safetensors", "preview.png"}
+    assert [key for key in storage.list(f"jobs/{job_id}/") if "render_" in key] == []
+
 def test_the_export_renders_the_published_edit_not_a_superseded_runs_grid_left_in_its_scratch(service, monkeypatch,
                                                                                               tmp_path):
     """An edit run that stalled while another run took its job over has its grid refused, but the file stays in its

@@ -1225,11 +1225,10 @@ def test_a_job_canceled_during_its_export_lists_none_of_the_exports_outputs(db, 
 
     def export(job, settings, *_args):  # as tasks._export publishes
         publish(job.id, "render_000.png", "render")
-        for name in ("turntable.mp4", "turntable.gif"):
+        for name in ("turntable.mp4", "turntable.gif"):  # (one set in tasks._export)
             publish(job.id, name, "video")
-            if name == "turntable.mp4":  # the fault: the user's cancel, just after the first output is listed
-                with session_scope() as session:
-                    request_cancel(session=session, job_ids=[job.id])
+        with session_scope() as session:  # the fault: the user's cancel, just after the turntables are listed
+            request_cancel(session=session, job_ids=[job.id])
         if seen == "by the redelivery":  # the run's end refused by an outage: it gives the job back unended
             raise OperationalError("UPDATE jobs", {}, Exception("server closed the connection unexpectedly"))
         runtime.StageCallbacks(job, "export", settings).callbacks.check_cancel("export")  # the mesh's check
