@@ -1769,6 +1769,35 @@ def test_an_export_whose_storage_refuses_one_view_lists_none_of_its_views(servic
     assert listed == {"initial_grid.safetensors", "edited_grid.safetensors", "preview.png"}
     assert [key for key in storage.list(f"jobs/{job_id}/") if "render_" in key] == []
 
+def test_an_export_whose_turntable_gif_upload_fails_after_storing_it_keeps_no_turntable_bytes(service, monkeypatch):
+    """An upload can fail after the storage kept its bytes (the PUT's answer lost, a connection reset on the way
+    back): the stopped set discarded only the uploads that had returned, leaving turntable.gif stored under the job
+    with no row listing it. Every upload begun is discarded unless a row records it."""
+    import voxe_core.edit
+    from voxe_service.storage import StorageError, get_storage
+    from worker import runtime, tasks
+
+    client, scene_id = service
+    job_id = _reconstructed_job(client, scene_id, "relu_field", export={
+        "views": 1, "view_size": 16, "turntable_frames": 2, "turntable_size": 16, "gif": True, "mesh": False})["id"]
+    monkeypatch.setattr(runtime, "get_guidance", lambda *args: NO_MODEL)
+    monkeypatch.setattr(voxe_core.edit, "edit", lambda initial, *args, **kwargs: initial.clone_grid())
+    assert tasks.edit_task.apply(args=(job_id,)).get()["state"] == "done"
+    storage = get_storage(tasks.get_settings())
+    put_file = type(storage).put_file
+
+    def stored_then_lost(self, key, path, content_type=None):
+        stored = put_file(self, key, path, content_type)
+        if key.endswith("/turntable.gif"):
+            raise StorageError(f"S3 bucket 'voxe': connection reset after uploading {stored.key}")
+        return stored
+
+    monkeypatch.setattr(type(storage), "put_file", stored_then_lost)
+    assert tasks.export_task.apply(args=(job_id,)).get()["state"] == "failed"
+    listed = {a["name"] for a in client.get(f"/v1/jobs/{job_id}/artifacts").json()}
+    assert not {"turntable.mp4", "turntable.gif"} & listed
+    assert [key for key in storage.list(f"jobs/{job_id}/") if "turntable" in key] == []
+
 def test_the_export_renders_the_published_edit_not_a_superseded_runs_grid_left_in_its_scratch(service, monkeypatch,
                                                                                               tmp_path):
     """An edit run that stalled while another run took its job over has its grid refused, but the file stays in its

@@ -727,15 +727,16 @@ def _publish(job_id: str, files: list[tuple[str, str | os.PathLike, str, str | N
     storage = storage or get_storage()
     with session_scope() as session:  # a run that lost its job uploads nothing ...
         _refuse_if_superseded(job_id, lambda: session.scalar(_token_query(job_id)))
-    previous, stored, uploaded = {}, {}, []
+    # uploaded: name -> key, taken as its upload starts (one that failed, its answer lost, may have stored the bytes)
+    previous, stored, uploaded = {}, {}, {}
     try:
         for name, path, _kind, key in files:
             previous[name] = recorded_key(job_id, name)
             if key is None:
                 fixed = job_key(job_id, name)
                 key = fixed if previous[name] != fixed else job_key(job_id, f"v-{uuid.uuid4().hex[:12]}/{name}")
+                uploaded[name] = key
                 stored[name] = storage.put_file(key, path, content_type(name))
-                uploaded.append(name)
             else:  # already in storage under another key (e.g. the shared reconstruction)
                 size, sha = file_sha256(path)
                 stored[name] = StoredObject(key, size, sha)
@@ -746,15 +747,15 @@ def _publish(job_id: str, files: list[tuple[str, str | os.PathLike, str, str | N
             artifacts = [_record_artifact(session, job_id, name, kind, stored[name]) for name, _, kind, _ in files]
     except RunSuperseded:
         ended = bool(uploaded) and has_ended(job_id)
-        for name in uploaded:  # the fixed key may be the new owner's; an ended job has none (unless a row lists it)
-            key = stored[name].key
+        # the fixed key may be the new owner's; an ended job has none (unless a row lists it)
+        for name, key in uploaded.items():
             if key != job_key(job_id, name) or (ended and not _may_be_recorded(job_id, name, key)):
                 storage.discard(key)
         raise
     except BaseException:  # the records were not written: neither are the bytes kept, unless a row does record them
-        for name in uploaded:  # (a commit may fail on its way back)
-            if not _may_be_recorded(job_id, name, stored[name].key):
-                storage.discard(stored[name].key)  # (a storage failing now must not hide the error that stopped us)
+        for name, key in uploaded.items():  # (a commit may fail on its way back)
+            if not _may_be_recorded(job_id, name, key):
+                storage.discard(key)  # (a storage failing now must not hide the error that stopped us)
         raise
     for name, old in previous.items():
         if old and old != stored[name].key and old.startswith(job_key(job_id, "")):
