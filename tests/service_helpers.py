@@ -219,6 +219,46 @@ def wait_until(predicate, timeout: float, interval: float = 0.2, what: str = "co
 
 
 @contextlib.contextmanager
+def silent_server():
+    """A loopback TCP server that accepts every connection and never answers (a hung or partitioned server): yields
+    (its port, the connections it accepted); closes them all at the end."""
+    server = socket.create_server(("127.0.0.1", 0))
+    accepted: list[socket.socket] = []
+
+    def accept_and_stay_silent():
+        with contextlib.suppress(OSError):  # the server closed: the test is over
+            while True:
+                accepted.append(server.accept()[0])
+
+    threading.Thread(target=accept_and_stay_silent, daemon=True).start()
+    try:
+        yield server.getsockname()[1], accepted
+    finally:
+        with contextlib.suppress(OSError):
+            server.shutdown(socket.SHUT_RDWR)  # wakes the accept (a close alone leaves it waiting)
+        server.close()
+        for connection in accepted:
+            connection.close()
+
+
+def outcome_within(call, seconds: float) -> list:
+    """``call()`` run in a daemon thread for at most ``seconds``: [its result or the exception it raised], or []
+    while it still waits (the thread is left to the process's end)."""
+    outcome: list = []
+
+    def run():
+        try:
+            outcome.append(call())
+        except Exception as exc:  # noqa: BLE001 - returned for the test to judge
+            outcome.append(exc)
+
+    thread = threading.Thread(target=run, daemon=True)
+    thread.start()
+    thread.join(seconds)
+    return outcome
+
+
+@contextlib.contextmanager
 def moto_s3():
     """moto's S3 server on a free port (real HTTP); yields the variables that point boto3 at it."""
     from moto.server import ThreadedMotoServer

@@ -2891,20 +2891,26 @@ def test_an_empty_webhook_url_is_sent_and_refused_not_dropped(api, tmp_path, cap
         assert client.request("GET", "/v1/jobs")["items"] == []
 
 
+def _plane_with_loopback_webhooks_allowed(tmp_path, monkeypatch) -> Path:
+    """A plane's OBJ written under ``tmp_path``, the service letting webhooks go to loopback addresses."""
+    from service_helpers import reset_service_caches
+
+    monkeypatch.setenv("VOXE_WEBHOOK_ALLOW_NETWORKS", "127.0.0.0/8")
+    reset_service_caches()
+    (tmp_path / "plane.obj").write_text(PLANE_OBJ)
+    return tmp_path / "plane.obj"
+
+
 def test_voxe_submit_sends_the_webhook_events_asked_for(api, tmp_path, monkeypatch, capsys):
     """``POST /v1/jobs`` takes ``webhook_events`` (which events go to the webhook_url), but ``voxe submit`` had no
     option for them: a job submitted with voxe was told only its end. --webhook-event (repeated) sends them; the
     service's refusals name the field (an event it does not send, one without --webhook-url)."""
-    from service_helpers import reset_service_caches
-
     from voxe_core.cli import main
 
     url, _ = api
-    monkeypatch.setenv("VOXE_WEBHOOK_ALLOW_NETWORKS", "127.0.0.0/8")
-    reset_service_caches()
-    (tmp_path / "plane.obj").write_text(PLANE_OBJ)
+    plane = _plane_with_loopback_webhooks_allowed(tmp_path, monkeypatch)
     with Client(url) as client:
-        scene_id = client.upload_scene(tmp_path / "plane.obj")["id"]
+        scene_id = client.upload_scene(plane)["id"]
         submit = ["submit", "a plane", "--scene", scene_id, "--api", url, "--quiet"]
         hook = ["--webhook-url", "http://127.0.0.1:9/hook"]
         assert main([*submit, *hook, "--webhook-event", "warning", "--webhook-event", "succeeded"]) == 0
@@ -3052,11 +3058,31 @@ def test_the_webhook_secret_is_read_and_rotated_through_the_client_and_voxe(api,
                                        "{'detail': 'moved'}, not a webhook secret\n")
 
 
+
+def assert_refused(call, said: str) -> None:
+    """``call()`` raises the ServiceError whose message starts with ``said`` ("GET /v1/jobs: HTTP 422: ..."), its
+    ``status`` the one said."""
+    with pytest.raises(ServiceError, match="^" + re.escape(said)) as refused:
+        call()
+    assert refused.value.status == int(said.split("HTTP ", 1)[1][:3])
+
+
+def assert_a_moved_answer_is_refused_as_not(calls: dict) -> None:
+    """Each call (what it reads: the call), answered a proxy's ``{"detail": "moved"}``, is a ServiceError quoting it
+    and saying what it is not."""
+    from service_helpers import answering
+
+    with answering(b'{"detail": "moved"}') as elsewhere, Client(elsewhere) as client:
+        for what, call in calls.items():
+            with pytest.raises(ServiceError, match=rf"answered \{{'detail': 'moved'\}}, not {what}"):
+                call(client)
+
+
 def test_scenes_are_read_and_listed_page_by_page_through_the_client(api, tmp_path):
     """The client had no call for ``GET /v1/scenes/{id}``, ``GET /v1/scenes`` nor ``GET /v1/scenes/{id}/reconstructions``:
     an upload's caller could not see it become ready (or why it failed) but through ``request``. A scene is read
     processing, then ready; the listing pages by its cursor, newest first; refusals are the service's."""
-    from service_helpers import answering, ingest
+    from service_helpers import ingest
 
     url, _ = api
     (tmp_path / "plane.obj").write_text(PLANE_OBJ)
@@ -3072,18 +3098,12 @@ def test_scenes_are_read_and_listed_page_by_page_through_the_client(api, tmp_pat
         assert [scene["id"] for scene in last["items"]] == [first] and last["next_cursor"] is None
         assert [scene["id"] for scene in client.list_scenes(offset=1)["items"]] == [first]
         assert client.scene_reconstructions(first) == []
-        with pytest.raises(ServiceError, match=r"^GET /v1/scenes: HTTP 422: query.limit: ") as refused:
-            client.list_scenes(limit=0)
-        assert refused.value.status == 422
-        with pytest.raises(ServiceError, match="^GET /v1/scenes/nope/reconstructions: HTTP 404: "):
-            client.scene_reconstructions("nope")
-    with answering(b'{"detail": "moved"}') as elsewhere, Client(elsewhere) as client:
-        with pytest.raises(ServiceError, match=r"answered \{'detail': 'moved'\}, not a page of a listing"):
-            client.list_scenes()
-        with pytest.raises(ServiceError, match=r"answered \{'detail': 'moved'\}, not a list of reconstructions"):
-            client.scene_reconstructions("s1")
-        with pytest.raises(ServiceError, match=r"answered \{'detail': 'moved'\}, not a scene with an id"):
-            client.get_scene("s1")
+        assert_refused(lambda: client.list_scenes(limit=0), "GET /v1/scenes: HTTP 422: query.limit: ")
+        assert_refused(lambda: client.scene_reconstructions("nope"), "GET /v1/scenes/nope/reconstructions: HTTP 404: ")
+    assert_a_moved_answer_is_refused_as_not({
+        "a page of a listing": lambda client: client.list_scenes(),
+        "a list of reconstructions": lambda client: client.scene_reconstructions("s1"),
+        "a scene with an id": lambda client: client.get_scene("s1")})
 
 
 def test_jobs_are_listed_and_their_timeline_and_webhook_deliveries_read_through_the_client(api, tmp_path,
@@ -3092,15 +3112,11 @@ def test_jobs_are_listed_and_their_timeline_and_webhook_deliveries_read_through_
     stream) nor ``GET /v1/jobs/{id}/webhooks``: a caller could not find its jobs, read what a finished one went
     through, nor see whether its webhook was delivered. A job canceled has its ``canceled`` event in its timeline and
     a delivery of it; the listing filters by state and scene and pages by its cursor."""
-    from service_helpers import answering, reset_service_caches
-
     url, _ = api
-    monkeypatch.setenv("VOXE_WEBHOOK_ALLOW_NETWORKS", "127.0.0.0/8")
-    reset_service_caches()
-    (tmp_path / "plane.obj").write_text(PLANE_OBJ)
+    plane = _plane_with_loopback_webhooks_allowed(tmp_path, monkeypatch)
     with Client(url) as client:
-        scene_id = client.upload_scene(tmp_path / "plane.obj")["id"]
-        other_scene = client.upload_scene(tmp_path / "plane.obj")["id"]
+        scene_id = client.upload_scene(plane)["id"]
+        other_scene = client.upload_scene(plane)["id"]
         hooked = client.create_job(scene_id, "a plane of gold", webhook_url="http://127.0.0.1:9/hook")["id"]
         queued = client.create_job(scene_id, "a plane of tin")["id"]
         elsewhere = client.create_job(other_scene, "a plane of wood")["id"]
@@ -3114,18 +3130,12 @@ def test_jobs_are_listed_and_their_timeline_and_webhook_deliveries_read_through_
         page = client.list_jobs(limit=2)
         assert [job["id"] for job in page["items"]] == [elsewhere, queued] and page["total"] == 3
         assert [job["id"] for job in client.list_jobs(cursor=page["next_cursor"])["items"]] == [hooked]
-        with pytest.raises(ServiceError, match=r"^GET /v1/jobs: HTTP 422: query.state: ") as refused:
-            client.list_jobs(state="done")
-        assert refused.value.status == 422
-        with pytest.raises(ServiceError, match="^GET /v1/jobs/nope/events: HTTP 404: "):
-            client.job_timeline("nope")
-    with answering(b'{"detail": "moved"}') as elsewhere_url, Client(elsewhere_url) as client:
-        with pytest.raises(ServiceError, match=r"answered \{'detail': 'moved'\}, not a page of a listing"):
-            client.list_jobs()
-        with pytest.raises(ServiceError, match=r"answered \{'detail': 'moved'\}, not a list of events"):
-            client.job_timeline("j1")
-        with pytest.raises(ServiceError, match=r"answered \{'detail': 'moved'\}, not a list of webhook deliveries"):
-            client.job_webhooks("j1")
+        assert_refused(lambda: client.list_jobs(state="done"), "GET /v1/jobs: HTTP 422: query.state: ")
+        assert_refused(lambda: client.job_timeline("nope"), "GET /v1/jobs/nope/events: HTTP 404: ")
+    assert_a_moved_answer_is_refused_as_not({
+        "a page of a listing": lambda client: client.list_jobs(),
+        "a list of events": lambda client: client.job_timeline("j1"),
+        "a list of webhook deliveries": lambda client: client.job_webhooks("j1")})
 
 
 def test_an_evaluation_is_created_through_the_client_once_per_idempotency_key(api, tmp_path):

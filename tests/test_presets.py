@@ -1719,71 +1719,69 @@ def test_an_export_whose_upload_fails_mid_mesh_set_lists_no_mesh_and_its_rerun_p
         assert hashlib.sha256(download.content).hexdigest() == artifacts[name]["sha256"]
 
 
-def test_an_export_whose_storage_refuses_the_turntable_gif_lists_neither_turntable_file(service, monkeypatch):
-    """turntable.mp4 and turntable.gif (one render of each frame feeds both) are one set, as the mesh formats are:
-    the storage refusing the GIF for good (access denied, no outage) had failed the job with turntable.mp4 listed
-    and stored, the GIF missing. Now the failed job lists neither and the storage keeps neither."""
+def _edited_job_to_export(service, monkeypatch, *, views: int, gif: bool):
+    """(client, job id, storage): a job of the service's scene edited (the edit a copy of its grid), exporting
+    ``views`` views of 16 px, a turntable of two frames (and its GIF where ``gif``), no mesh."""
     import voxe_core.edit
-    from voxe_service.storage import StorageError, get_storage
+    from voxe_service.storage import get_storage
     from worker import runtime, tasks
 
     client, scene_id = service
     job_id = _reconstructed_job(client, scene_id, "relu_field", export={
-        "views": 1, "view_size": 16, "turntable_frames": 2, "turntable_size": 16, "gif": True, "mesh": False})["id"]
+        "views": views, "view_size": 16, "turntable_frames": 2, "turntable_size": 16, "gif": gif, "mesh": False})["id"]
     monkeypatch.setattr(runtime, "get_guidance", lambda *args: NO_MODEL)
     monkeypatch.setattr(voxe_core.edit, "edit", lambda initial, *args, **kwargs: initial.clone_grid())
     assert tasks.edit_task.apply(args=(job_id,)).get()["state"] == "done"
-    storage = get_storage(tasks.get_settings())
-    failing_uploads(monkeypatch, storage, "/turntable.gif",
-                    StorageError("S3 bucket 'voxe': AccessDenied when uploading"))
+    return client, job_id, get_storage(tasks.get_settings())
+
+
+def _artifacts_of_an_export_refused_for_good(client, job_id: str) -> set[str]:
+    """The names a job lists once its export failed on the storage's AccessDenied (no outage: the job fails)."""
+    from worker import tasks
+
     assert tasks.export_task.apply(args=(job_id,)).get()["state"] == "failed"
     job = client.get(f"/v1/jobs/{job_id}").json()
     assert (job["state"], job["error"]) == (
         "failed", "export: StorageError: S3 bucket 'voxe': AccessDenied when uploading")
-    listed = {a["name"] for a in client.get(f"/v1/jobs/{job_id}/artifacts").json()}
+    return {a["name"] for a in client.get(f"/v1/jobs/{job_id}/artifacts").json()}
+
+
+def test_an_export_whose_storage_refuses_the_turntable_gif_lists_neither_turntable_file(service, monkeypatch):
+    """turntable.mp4 and turntable.gif (one render of each frame feeds both) are one set, as the mesh formats are:
+    the storage refusing the GIF for good (access denied, no outage) had failed the job with turntable.mp4 listed
+    and stored, the GIF missing. Now the failed job lists neither and the storage keeps neither."""
+    from voxe_service.storage import StorageError
+
+    client, job_id, storage = _edited_job_to_export(service, monkeypatch, views=1, gif=True)
+    failing_uploads(monkeypatch, storage, "/turntable.gif",
+                    StorageError("S3 bucket 'voxe': AccessDenied when uploading"))
+    listed = _artifacts_of_an_export_refused_for_good(client, job_id)
     assert listed == {"initial_grid.safetensors", "edited_grid.safetensors", "preview.png", "render_000.png"}
     assert [key for key in storage.list(f"jobs/{job_id}/") if "turntable" in key] == []
+
 
 def test_an_export_whose_storage_refuses_one_view_lists_none_of_its_views(service, monkeypatch):
     """The export's views (render_000.png ...) are one set, as the evaluation's rings are: the storage refusing
     render_001.png for good (access denied, no outage) had failed the job with render_000.png listed and stored, a
     ring of one view where three were asked for. Now the failed job lists none of them and the storage keeps none."""
-    import voxe_core.edit
-    from voxe_service.storage import StorageError, get_storage
-    from worker import runtime, tasks
+    from voxe_service.storage import StorageError
 
-    client, scene_id = service
-    job_id = _reconstructed_job(client, scene_id, "relu_field", export={
-        "views": 3, "view_size": 16, "turntable_frames": 2, "turntable_size": 16, "gif": False, "mesh": False})["id"]
-    monkeypatch.setattr(runtime, "get_guidance", lambda *args: NO_MODEL)
-    monkeypatch.setattr(voxe_core.edit, "edit", lambda initial, *args, **kwargs: initial.clone_grid())
-    assert tasks.edit_task.apply(args=(job_id,)).get()["state"] == "done"
-    storage = get_storage(tasks.get_settings())
+    client, job_id, storage = _edited_job_to_export(service, monkeypatch, views=3, gif=False)
     failing_uploads(monkeypatch, storage, "/render_001.png",
                     StorageError("S3 bucket 'voxe': AccessDenied when uploading"))
-    assert tasks.export_task.apply(args=(job_id,)).get()["state"] == "failed"
-    job = client.get(f"/v1/jobs/{job_id}").json()
-    assert (job["state"], job["error"]) == (
-        "failed", "export: StorageError: S3 bucket 'voxe': AccessDenied when uploading")
-    listed = {a["name"] for a in client.get(f"/v1/jobs/{job_id}/artifacts").json()}
+    listed = _artifacts_of_an_export_refused_for_good(client, job_id)
     assert listed == {"initial_grid.safetensors", "edited_grid.safetensors", "preview.png"}
     assert [key for key in storage.list(f"jobs/{job_id}/") if "render_" in key] == []
+
 
 def test_an_export_whose_turntable_gif_upload_fails_after_storing_it_keeps_no_turntable_bytes(service, monkeypatch):
     """An upload can fail after the storage kept its bytes (the PUT's answer lost, a connection reset on the way
     back): the stopped set discarded only the uploads that had returned, leaving turntable.gif stored under the job
     with no row listing it. Every upload begun is discarded unless a row records it."""
-    import voxe_core.edit
-    from voxe_service.storage import StorageError, get_storage
-    from worker import runtime, tasks
+    from voxe_service.storage import StorageError
+    from worker import tasks
 
-    client, scene_id = service
-    job_id = _reconstructed_job(client, scene_id, "relu_field", export={
-        "views": 1, "view_size": 16, "turntable_frames": 2, "turntable_size": 16, "gif": True, "mesh": False})["id"]
-    monkeypatch.setattr(runtime, "get_guidance", lambda *args: NO_MODEL)
-    monkeypatch.setattr(voxe_core.edit, "edit", lambda initial, *args, **kwargs: initial.clone_grid())
-    assert tasks.edit_task.apply(args=(job_id,)).get()["state"] == "done"
-    storage = get_storage(tasks.get_settings())
+    client, job_id, storage = _edited_job_to_export(service, monkeypatch, views=1, gif=True)
     put_file = type(storage).put_file
 
     def stored_then_lost(self, key, path, content_type=None):
@@ -1797,6 +1795,7 @@ def test_an_export_whose_turntable_gif_upload_fails_after_storing_it_keeps_no_tu
     listed = {a["name"] for a in client.get(f"/v1/jobs/{job_id}/artifacts").json()}
     assert not {"turntable.mp4", "turntable.gif"} & listed
     assert [key for key in storage.list(f"jobs/{job_id}/") if "turntable" in key] == []
+
 
 def test_the_export_renders_the_published_edit_not_a_superseded_runs_grid_left_in_its_scratch(service, monkeypatch,
                                                                                               tmp_path):

@@ -311,13 +311,10 @@ def test_revoke_key_of_the_built_in_local_key_says_what_it_is(auth_client, capsy
             "(VOXE_AUTH=on requires a key of every request)") in capsys.readouterr().err
 
 
-@pytest.mark.parametrize("command", [["list-keys"], ["create-key", "--name", "x"], ["revoke-key", "abc"]])
-def test_an_admin_command_facing_a_database_that_is_down_says_so_without_a_traceback(monkeypatch, capsys, command):
-    """It had ended in SQLAlchemy's traceback ("sqlalchemy.exc.OperationalError: (psycopg.OperationalError)
-    connection failed: ..."), a page of it for the operator to read the cause out of."""
+def _database_down(monkeypatch) -> None:
+    """VOXE_DATABASE_URL set to a PostgreSQL nobody serves (a port just closed), its password ``s3cret``."""
     import socket
 
-    from api import admin
     from service_helpers import reset_service_caches
 
     with socket.socket() as s:
@@ -325,6 +322,16 @@ def test_an_admin_command_facing_a_database_that_is_down_says_so_without_a_trace
         port = s.getsockname()[1]  # nothing listens once it is closed
     monkeypatch.setenv("VOXE_DATABASE_URL", f"postgresql+psycopg://voxe:s3cret@127.0.0.1:{port}/voxe")
     reset_service_caches()
+
+
+@pytest.mark.parametrize("command", [["list-keys"], ["create-key", "--name", "x"], ["revoke-key", "abc"]])
+def test_an_admin_command_facing_a_database_that_is_down_says_so_without_a_traceback(monkeypatch, capsys, command):
+    """It had ended in SQLAlchemy's traceback ("sqlalchemy.exc.OperationalError: (psycopg.OperationalError)
+    connection failed: ..."), a page of it for the operator to read the cause out of."""
+    from api import admin
+    from service_helpers import reset_service_caches
+
+    _database_down(monkeypatch)
     try:
         assert admin.main(command) == 1
     finally:
@@ -362,16 +369,10 @@ def test_the_readmes_admin_exit_codes_are_those_the_commands_exit_with(auth_clie
 def test_an_admin_usage_error_is_said_before_the_database_is_reached(monkeypatch, capsys):
     """Regression: a --name create-key refuses was checked after the database's migrations ran: with the database
     down, ``create-key --name ""`` exited 1 saying the database cannot be reached, not 2 naming --name."""
-    import socket
-
     from api import admin
     from service_helpers import reset_service_caches
 
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]  # nothing listens once it is closed
-    monkeypatch.setenv("VOXE_DATABASE_URL", f"postgresql+psycopg://voxe:s3cret@127.0.0.1:{port}/voxe")
-    reset_service_caches()
+    _database_down(monkeypatch)
     try:
         with pytest.raises(SystemExit) as exc:
             admin.main(["create-key", "--name", " "])

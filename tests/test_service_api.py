@@ -3475,9 +3475,9 @@ def test_an_empty_scene_id_filter_is_a_422_naming_it(client):
     assert client.get("/v1/jobs").json()["total"] == 1
 
 
-def test_a_mesh_loaded_without_the_mtl_its_obj_names_says_so_on_the_jobs_waiting_for_it(client, root, monkeypatch):
-    """An OBJ whose mtllib names an .mtl not sent uploads (``voxe submit`` sends it so, warning) and loads grey: that
-    had been said in the worker's log alone. The jobs waiting for the scene now get a ``warning`` event saying it."""
+def _upload_an_obj_naming_an_mtl_not_sent(client, monkeypatch) -> dict:
+    """The scene of an OBJ (cube/m.obj) whose mtllib names model.mtl, not sent, rendered into 2 views of 32 px at its
+    ingest; as created (processing)."""
     from voxe_service import datasets
 
     monkeypatch.setattr(datasets, "MESH_VIEWS", 2)
@@ -3485,7 +3485,13 @@ def test_a_mesh_loaded_without_the_mtl_its_obj_names_says_so_on_the_jobs_waiting
     obj = ("mtllib model.mtl\nv 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nv 0 0 1\nusemtl red\nf 1 2 3\nf 1 3 4\nf 1 2 5\n")
     response = client.post("/v1/scenes", files=[("files", ("cube/m.obj", obj.encode(), "text/plain"))])
     assert response.status_code == 201, response.text
-    scene = response.json()
+    return response.json()
+
+
+def test_a_mesh_loaded_without_the_mtl_its_obj_names_says_so_on_the_jobs_waiting_for_it(client, root, monkeypatch):
+    """An OBJ whose mtllib names an .mtl not sent uploads (``voxe submit`` sends it so, warning) and loads grey: that
+    had been said in the worker's log alone. The jobs waiting for the scene now get a ``warning`` event saying it."""
+    scene = _upload_an_obj_naming_an_mtl_not_sent(client, monkeypatch)
     job = client.post("/v1/jobs", json={"scene_id": scene["id"], **JOB}).json()
     assert ingest(scene["id"]) == {"scene_id": scene["id"], "state": "ready"}
     events = client.get(f"/v1/jobs/{job['id']}/events").json()
@@ -3526,16 +3532,10 @@ def test_a_job_created_on_a_mesh_scene_once_ready_is_told_its_ingests_warnings(c
     are told to edits)."""
     from sqlalchemy import update
 
-    from voxe_service import datasets
     from voxe_service.db import session_scope
     from voxe_service.models import Job
 
-    monkeypatch.setattr(datasets, "MESH_VIEWS", 2)
-    monkeypatch.setattr(datasets, "MESH_VIEW_SIZE", 32)
-    obj = ("mtllib model.mtl\nv 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nv 0 0 1\nusemtl red\nf 1 2 3\nf 1 3 4\nf 1 2 5\n")
-    response = client.post("/v1/scenes", files=[("files", ("cube/m.obj", obj.encode(), "text/plain"))])
-    assert response.status_code == 201, response.text
-    scene = response.json()
+    scene = _upload_an_obj_naming_an_mtl_not_sent(client, monkeypatch)
     assert scene["warnings"] is None  # (processing)
     waiting = client.post("/v1/jobs", json={"scene_id": scene["id"], **JOB}).json()
     assert ingest(scene["id"]) == {"scene_id": scene["id"], "state": "ready"}

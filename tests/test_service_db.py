@@ -950,56 +950,37 @@ def test_a_postgresql_that_accepts_and_never_answers_is_an_outage_within_the_con
     its own, so a connect had waited for ever, each request holding its thread (and every /readyz leaving one
     behind). Now a URL without ``connect_timeout`` gets POSTGRES_CONNECT_TIMEOUT_S, and the connect fails as an
     outage (the API's 503), its migrations at startup too; one the URL sets is kept."""
-    import contextlib
-    import socket
     import time
 
     from sqlalchemy import text
     from sqlalchemy.exc import OperationalError
 
+    from service_helpers import outcome_within, silent_server
     from voxe_service import db as db_module
     from voxe_service.db import connect_timeout_args, database_outage, make_engine, run_migrations
 
     assert connect_timeout_args("postgresql+psycopg://u@db/voxe?connect_timeout=3") == {}
     assert connect_timeout_args("sqlite:///./var/voxe.db") == {}
     monkeypatch.setattr(db_module, "POSTGRES_CONNECT_TIMEOUT_S", 2)
-    server = socket.create_server(("127.0.0.1", 0))
-    accepted = []
 
-    def accept_and_stay_silent():
-        with contextlib.suppress(OSError):  # the server closed: the test is over
-            while True:
-                accepted.append(server.accept()[0])
+    def query(engine):
+        with engine.connect() as connection:
+            return connection.execute(text("SELECT 1")).scalar()
 
-    threading.Thread(target=accept_and_stay_silent, daemon=True).start()
-    engine = make_engine(f"postgresql+psycopg://voxe@127.0.0.1:{server.getsockname()[1]}/voxe")
-    outcome, started = [], time.monotonic()
-
-    def query():
+    with silent_server() as (port, accepted):
+        url = f"postgresql+psycopg://voxe@127.0.0.1:{port}/voxe"
+        engine, started = make_engine(url), time.monotonic()
         try:
-            with engine.connect() as connection:
-                outcome.append(connection.execute(text("SELECT 1")).scalar())
-        except Exception as exc:  # noqa: BLE001 - what the API turns into its 503
-            outcome.append(exc)
-
-    asker = threading.Thread(target=query, daemon=True)
-    asker.start()
-    asker.join(30)
-    try:
-        assert not asker.is_alive(), "the connect still waited on the silent server after 30 s"
-        assert database_outage(outcome[0]) and "timeout" in str(outcome[0]), outcome
-        assert accepted and time.monotonic() - started < 15
-        started = time.monotonic()  # the API's first connect: its migrations at startup
-        with pytest.raises(OperationalError, match="timeout"):
-            run_migrations(f"postgresql+psycopg://voxe@127.0.0.1:{server.getsockname()[1]}/voxe")
-        assert time.monotonic() - started < 15
-    finally:
-        with contextlib.suppress(OSError):
-            server.shutdown(socket.SHUT_RDWR)  # wakes the accept (a close alone leaves it waiting)
-        server.close()
-        for connection in accepted:
-            connection.close()
-        engine.dispose()
+            outcome = outcome_within(lambda: query(engine), 30)
+            assert outcome, "the connect still waited on the silent server after 30 s"
+            assert database_outage(outcome[0]) and "timeout" in str(outcome[0]), outcome
+            assert accepted and time.monotonic() - started < 15
+            started = time.monotonic()  # the API's first connect: its migrations at startup
+            with pytest.raises(OperationalError, match="timeout"):
+                run_migrations(url)
+            assert time.monotonic() - started < 15
+        finally:
+            engine.dispose()
 
 
 # ------------------------------------------------------------------------------------------ the event timeline

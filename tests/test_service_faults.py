@@ -991,48 +991,24 @@ def test_a_redis_that_accepts_and_never_answers_refuses_a_submission_within_its_
     """A hung or partitioned Redis (the TCP connection made, no reply ever): a send had blocked for ever, so a
     POST held its request, and every /readyz left a thread behind. Now each try times out after
     VOXE_BROKER_SOCKET_TIMEOUT_S, and after Celery's publish retries the send fails as a broker that refuses."""
-    import contextlib
-    import socket
-    import threading
     import time
 
+    from service_helpers import outcome_within, silent_server
     from voxe_service.queue import get_queue
 
-    server = socket.create_server(("127.0.0.1", 0))
-    accepted = []
-
-    def accept_and_stay_silent():
-        with contextlib.suppress(OSError):  # the server closed: the test is over
-            while True:
-                accepted.append(server.accept()[0])
-
-    threading.Thread(target=accept_and_stay_silent, daemon=True).start()
-    for key, value in service_env(tmp_path, f"redis://127.0.0.1:{server.getsockname()[1]}/0",
-                                  VOXE_BROKER_SOCKET_TIMEOUT_S="0.5").items():
-        monkeypatch.setenv(key, value)
-    reset_service_caches()
-    queue, started, outcome = get_queue(), time.monotonic(), []
-
-    def send():
-        try:
-            outcome.append(queue.send(queue.stage_chain("job-1", "global")))
-        except Exception as exc:  # noqa: BLE001 - what the API turns into its 503
-            outcome.append(exc)
-
-    sender = threading.Thread(target=send, daemon=True)
-    sender.start()
-    sender.join(30)
-    try:
-        assert not sender.is_alive(), "the send still waited on the silent server after 30 s"
-        assert "Timeout reading from 127.0.0.1" in str(outcome[0]) and accepted, outcome
-        assert time.monotonic() - started < 15  # four tries of 0.5 s
-    finally:
+    with silent_server() as (port, accepted):
+        for key, value in service_env(tmp_path, f"redis://127.0.0.1:{port}/0",
+                                      VOXE_BROKER_SOCKET_TIMEOUT_S="0.5").items():
+            monkeypatch.setenv(key, value)
         reset_service_caches()
-        with contextlib.suppress(OSError):
-            server.shutdown(socket.SHUT_RDWR)  # wakes the accept (a close alone leaves it waiting)
-        server.close()
-        for connection in accepted:
-            connection.close()
+        try:
+            queue, started = get_queue(), time.monotonic()
+            outcome = outcome_within(lambda: queue.send(queue.stage_chain("job-1", "global")), 30)
+            assert outcome, "the send still waited on the silent server after 30 s"
+            assert "Timeout reading from 127.0.0.1" in str(outcome[0]) and accepted, outcome
+            assert time.monotonic() - started < 15  # four tries of 0.5 s
+        finally:
+            reset_service_caches()
 
 
 def test_an_artifact_a_stalled_run_records_as_its_job_is_taken_over_lands_before_the_takeover(db, tmp_path,
@@ -1201,7 +1177,7 @@ def listed_artifacts(job_id: str) -> dict[str, str]:
 
 @pytest.mark.parametrize("seen", ["at the mesh's check", "at the stage's end", "by the redelivery"])
 def test_a_job_canceled_during_its_export_lists_none_of_the_exports_outputs(db, tmp_path, monkeypatch, seen):
-    """A cancel landing just after the export published its first output (turntable.mp4) ended the job canceled
+    """A cancel landing just after the export published its first set (the turntable) ended the job canceled
     with the turntables, the views (and, seen at the stage's end, the mesh) listed: half an export. The stage's
     outputs are withdrawn as it ends canceled, their rows and then their bytes, whether the cancel is seen at the
     mesh's check, at the stage's end, or by the redelivery of a run a database outage stopped after it; the

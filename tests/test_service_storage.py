@@ -498,49 +498,23 @@ def test_s3_endpoint_that_accepts_and_never_answers_is_unavailable_within_its_ti
     """A hung or partitioned S3 endpoint (the TCP connection made, no answer ever): each of boto3's five tries had
     waited its 60 s read timeout, so an upload or a download held its request 5 minutes before its 503. Now each
     try waits VOXE_S3_TIMEOUT_S, and the request fails as a storage that cannot serve now (the API's 503)."""
-    import contextlib
-    import socket
-    import threading
     import time
 
+    from service_helpers import outcome_within, silent_server
     from voxe_service import storage as storage_module
     from voxe_service.settings import Settings
     from voxe_service.storage import StorageUnavailable, get_storage
 
-    server = socket.create_server(("127.0.0.1", 0))
-    accepted = []
-
-    def accept_and_stay_silent():
-        with contextlib.suppress(OSError):  # the server closed: the test is over
-            while True:
-                accepted.append(server.accept()[0])
-
-    threading.Thread(target=accept_and_stay_silent, daemon=True).start()
     monkeypatch.setattr(S3Storage, "_ensure_bucket", lambda self: None)  # the bucket was there at the start
     monkeypatch.setattr(storage_module, "_instances", {})
-    settings = Settings(storage_backend="s3", s3_endpoint_url=f"http://127.0.0.1:{server.getsockname()[1]}",
-                        s3_region="us-east-1", s3_timeout_s=0.5)
-    outcome, started = [], time.monotonic()
-
-    def read():
-        try:
-            outcome.append(get_storage(settings).size("jobs/a/x.bin"))
-        except Exception as exc:  # noqa: BLE001 - what the API turns into its 503
-            outcome.append(exc)
-
-    reader = threading.Thread(target=read, daemon=True)
-    reader.start()
-    reader.join(60)
-    try:
-        assert not reader.is_alive(), "the read still waited on the silent endpoint after 60 s"
+    with silent_server() as (port, accepted):
+        settings = Settings(storage_backend="s3", s3_endpoint_url=f"http://127.0.0.1:{port}", s3_region="us-east-1",
+                            s3_timeout_s=0.5)
+        started = time.monotonic()
+        outcome = outcome_within(lambda: get_storage(settings).size("jobs/a/x.bin"), 60)
+        assert outcome, "the read still waited on the silent endpoint after 60 s"
         assert isinstance(outcome[0], StorageUnavailable) and "Read timeout" in str(outcome[0]), outcome
         assert accepted and time.monotonic() - started < 30  # five tries of 0.5 s, and boto3's pauses between
-    finally:
-        with contextlib.suppress(OSError):
-            server.shutdown(socket.SHUT_RDWR)  # wakes the accept (a close alone leaves it waiting)
-        server.close()
-        for connection in accepted:
-            connection.close()
 
 
 def test_s3_missing_bucket_is_a_storage_error_not_a_missing_key(aws_env, s3_endpoint, s3_server, tmp_path):
