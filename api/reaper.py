@@ -53,6 +53,10 @@ or ready), the scene counting such re-sends, each doubling the wait before the n
 an ingest is claimed first (a conditional update of the row as read), so of several reapers reading it at once one
 sends it.
 
+An upload is orphaned when what is stored under ``scenes/<id>/`` (an unfinished S3 multipart upload included) has no
+scene row and was last written ``VOXE_ORPHANED_UPLOAD_AGE_S`` ago: the API process storing it was killed before it
+recorded the scene (:func:`reap_orphaned_uploads` deletes it).
+
 The API runs :func:`reap_orphaned_jobs` at startup and then every ``VOXE_REAPER_INTERVAL_S`` in a
 background thread (:class:`Reaper`). Every update is conditional on the row still being what the
 reaper saw, so several API processes may reap side by side and a worker that reports in at the
@@ -63,6 +67,7 @@ from __future__ import annotations
 
 import logging
 import threading
+import time
 from datetime import datetime, timedelta
 
 from sqlalchemy import and_, func, or_, select
@@ -72,14 +77,17 @@ from voxe_service.db import session_scope, sync_clock
 from voxe_service.failing import FailingStreak
 from voxe_service.jobs import finish_jobs
 from voxe_service.models import (CANCELED, EVALUATE, FAILED, PROCESSING, QUEUED, RUNNING, Job, JobEvent, Scene,
-                                 WorkerHeartbeat, utcnow)
+                                 WorkerHeartbeat, system_now, utcnow)
 from voxe_service.queue import (QueueUnavailable, get_queue, is_sql_broker, requeue_interrupted, requeue_limit_error,
                                  send_ingest_again, send_queued_again)
 from voxe_service.scenes import fail_scene
 from voxe_service.settings import Settings
-from voxe_service.storage import get_storage, job_key, scene_key
+from voxe_service.storage import SCENES_PREFIX, get_storage, job_key, scene_key
 
 log = logging.getLogger("voxe.reaper")
+
+UPLOAD_SWEEP_INTERVAL_S = 3600.0
+"""How often a reaper runs :func:`reap_orphaned_uploads`: it lists every scene's objects, too much for each pass."""
 
 LOST_MESSAGE_SETTING = "VOXE_JOB_LOST_MESSAGE_TIMEOUT_S"
 """Named in the reason of each re-send of a job whose message was taken as lost: what counts them."""
@@ -300,6 +308,29 @@ def reap_orphaned_scenes(settings: Settings, now: datetime | None = None) -> lis
     return reaped
 
 
+def reap_orphaned_uploads(settings: Settings, now: datetime | None = None) -> list[str]:
+    """Delete the stored uploads no scene records, last written ``orphaned_upload_age_s`` ago (their unfinished S3
+    multipart uploads aborted: ``delete_prefix``); returns their scene ids. An API process killed mid-store, or
+    between storing and recording, had left them for good: every other cleanup starts from a row."""
+    storage = get_storage(settings)
+    cutoff = (now or system_now()) - timedelta(seconds=settings.orphaned_upload_age_s)
+    newest: dict[str, datetime] = {}
+    for key, written in storage.written_at(SCENES_PREFIX).items():
+        scene_id = key.split("/")[1]
+        newest[scene_id] = max(written, newest.get(scene_id, written))
+    old = [scene_id for scene_id, written in newest.items() if written < cutoff]
+    recorded = set()
+    with session_scope() as session:
+        for start in range(0, len(old), 500):
+            recorded |= set(session.scalars(select(Scene.id).where(Scene.id.in_(old[start:start + 500]))))
+    orphans = [scene_id for scene_id in old if scene_id not in recorded]
+    storage.discard_prefixes(*map(scene_key, orphans))
+    for scene_id in orphans:
+        log.warning("reaper: deleted the stored upload %s, which no scene records (its API process stopped while "
+                    "storing it)", scene_key(scene_id))
+    return orphans
+
+
 def _send_ingest_again(session, scene_id: str, seen_updated_at: datetime, why: str, lost: bool = False) -> None:
     """``send_ingest_again`` (claimed: of several reapers reading the scene at once, one sends it), said in the log;
     a broker that refuses leaves the scene as it was read, for a later pass."""
@@ -313,12 +344,13 @@ def _send_ingest_again(session, scene_id: str, seen_updated_at: datetime, why: s
 
 
 class Reaper:
-    """Runs :func:`reap_orphaned_jobs` now and every ``reaper_interval_s`` until :meth:`stop`."""
+    """Runs :func:`reap_orphaned_jobs` (and the other reaps) now and every ``reaper_interval_s`` until :meth:`stop`."""
 
     def __init__(self, settings: Settings):
         self.settings = settings
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="voxe-reaper", daemon=True)
+        self._uploads_swept_at: float | None = None  # (time.monotonic)
 
     def start(self) -> Reaper:
         self._thread.start()
@@ -340,6 +372,10 @@ class Reaper:
                 prefixes = [scene_key(s) for s in scenes]
                 prefixes += [job_key(j, "checkpoints/") for j in reap_orphaned_jobs(self.settings)]
                 get_storage(self.settings).discard_prefixes(*prefixes)
+                swept = self._uploads_swept_at
+                if swept is None or time.monotonic() - swept >= UPLOAD_SWEEP_INTERVAL_S:
+                    reap_orphaned_uploads(self.settings)  # last: a storage outage keeps the rest of the pass
+                    self._uploads_swept_at = time.monotonic()
             except Exception as exc:  # noqa: BLE001 - a failed pass is retried on the next one
                 interval = self.settings.reaper_interval_s  # (not backing off: a pass a minute is no flood)
                 self._stop.wait(streak.failed_once_more(exc, interval, interval))

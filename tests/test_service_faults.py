@@ -444,6 +444,7 @@ def test_a_reaper_whose_passes_fail_logs_one_traceback_then_a_line_each_and_says
     monkeypatch.setattr(reaper, "sync_clock", lambda: None)
     monkeypatch.setattr(reaper, "reap_orphaned_scenes", scenes)
     monkeypatch.setattr(reaper, "reap_orphaned_jobs", lambda settings: [])
+    monkeypatch.setattr(reaper, "reap_orphaned_uploads", lambda settings: [])
     monkeypatch.setattr(reaper, "get_storage", lambda settings: types.SimpleNamespace(
         discard_prefixes=lambda *prefixes: None))
     with caplog.at_level(logging.INFO, logger="voxe.reaper"):
@@ -458,6 +459,41 @@ def test_a_reaper_whose_passes_fail_logs_one_traceback_then_a_line_each_and_says
         "reaper: pass 4 in a row failed; next in 0.05 s: OperationalError: "
         "(builtins.Exception) connection refused",
         "reaper: passes succeed again, after 4 failed in a row")
+
+
+def test_the_reaper_sweeps_for_unrecorded_uploads_at_its_start_then_hourly_not_each_pass(monkeypatch):
+    """The sweep lists every scene's objects (and reads their rows): at the start, then each UPLOAD_SWEEP_INTERVAL_S,
+    not on every pass a minute apart."""
+    import threading
+    import types
+
+    import api.reaper as reaper
+
+    passes, sweeps, enough = [], [], threading.Event()
+
+    def jobs(settings):
+        passes.append(1)
+        if len(passes) >= 5:
+            enough.set()
+        return []
+
+    monkeypatch.setattr(reaper, "sync_clock", lambda: None)
+    monkeypatch.setattr(reaper, "reap_orphaned_scenes", lambda settings: [])
+    monkeypatch.setattr(reaper, "reap_orphaned_jobs", jobs)
+    monkeypatch.setattr(reaper, "reap_orphaned_uploads", lambda settings: sweeps.append(1) or [])
+    monkeypatch.setattr(reaper, "get_storage", lambda settings: types.SimpleNamespace(
+        discard_prefixes=lambda *prefixes: None))
+    running = reaper.Reaper(types.SimpleNamespace(reaper_interval_s=0.01)).start()
+    try:
+        assert enough.wait(10)
+        assert len(sweeps) == 1
+        monkeypatch.setattr(reaper, "UPLOAD_SWEEP_INTERVAL_S", 0.0)  # (an hour passed)
+        passes.clear()
+        enough.clear()
+        assert enough.wait(10)
+    finally:
+        running.stop()
+    assert len(sweeps) >= 4
 
 
 def test_reading_the_database_clock_while_postgresql_is_down_logs_one_traceback_then_a_line_each(monkeypatch,
@@ -5105,6 +5141,88 @@ def test_the_parts_an_s3_writer_killed_mid_upload_left_go_with_its_job(tmp_path,
             assert storage.delete_prefix("jobs/k/") == 1
         assert storage.list() == []
         assert "could not abort the unfinished uploads under 'jobs/k/'" in caplog.text and "AccessDenied" in caplog.text
+
+
+
+def test_the_reaper_deletes_an_upload_no_scene_records_once_old_and_keeps_young_and_recorded_ones(db, caplog):
+    """An API process killed after storing an upload and before recording its scene (or mid-store: a writer's
+    temporary file) left ``scenes/<id>/`` with no row, kept for ever: every cleanup starts from a row. The reaper
+    deletes it once last written VOXE_ORPHANED_UPLOAD_AGE_S ago; a younger one (still being stored, or about to be
+    recorded) and a recorded scene's objects, however old, stay."""
+    from api import reaper
+    from voxe_service.models import system_now
+    from voxe_service.storage import get_storage, scene_key
+
+    storage = get_storage(db)
+    age = db.orphaned_upload_age_s
+    old = time.time() - age - 60
+    orphan, half_written, young, recorded = uuid.uuid4().hex, uuid.uuid4().hex, uuid.uuid4().hex, add_scene()
+    for scene_id in (orphan, young, recorded):
+        storage.put_bytes(scene_key(scene_id, "dataset.zip"), b"zip")
+    partial = storage.path(scene_key(half_written, ".dataset.zip.0123456789abcdef0123456789abcdef.tmp"))
+    partial.parent.mkdir(parents=True)
+    partial.write_bytes(b"z")  # a killed writer's temporary file (never listed)
+    for scene_id in (orphan, half_written, recorded):
+        for path in (storage.root / "scenes" / scene_id).iterdir():
+            os.utime(path, (old, old))
+    assert reaper.reap_orphaned_uploads(db, now=system_now() - timedelta(seconds=120)) == []  # none that old yet
+    with caplog.at_level(logging.WARNING, logger="voxe.reaper"):
+        assert sorted(reaper.reap_orphaned_uploads(db)) == sorted([orphan, half_written])
+    assert f"deleted the stored upload scenes/{orphan}/, which no scene records" in caplog.text
+    assert storage.written_at("scenes/").keys() == {scene_key(young, "dataset.zip"), scene_key(recorded, "dataset.zip")}
+    assert not (storage.root / "scenes" / half_written).exists()
+
+
+@pytest.mark.parametrize("server", ["moto", "seaweedfs"])
+def test_the_reaper_aborts_the_parts_of_an_upload_whose_api_process_was_killed_mid_store(tmp_path, monkeypatch,
+                                                                                        request, server, db):
+    """SIGKILL a process storing a scene's upload in parts: S3 keeps the parts under scenes/<id>/ with no object and
+    no scene row, and nothing had ever aborted them (a prefix's cleanup starts from a row). Once as old as
+    VOXE_ORPHANED_UPLOAD_AGE_S the reaper aborts them; a recorded scene's object stays, and before that age nothing
+    goes (SeaweedFS: moto dates its uploads in 2010)."""
+    import signal
+    import subprocess
+    import sys
+
+    from api import reaper
+    from service_helpers import REPO
+    from voxe_service.models import system_now
+    from voxe_service.storage import S3Storage
+
+    source = tmp_path / "dataset.zip"
+    source.write_bytes(os.urandom(20 * 1024 * 1024))  # above boto3's 8 MiB multipart threshold
+    writer = ("import sys, time\n"
+              "from voxe_service.storage import S3Storage\n"
+              "storage = S3Storage(sys.argv[1], endpoint_url=sys.argv[2], region='us-east-1')\n"
+              "storage.client.meta.events.register('after-call.s3.UploadPart',\n"
+              "                                    lambda **_: (print('part', flush=True), time.sleep(60)))\n"
+              "storage.put_file('scenes/' + sys.argv[4] + '/dataset.zip', sys.argv[3])\n")
+    orphan, recorded = uuid.uuid4().hex, add_scene()
+    with s3_server(request, server) as env:
+        for key in ("AWS_ACCESS_KEY_ID", "AWS_SECRET_ACCESS_KEY", "AWS_DEFAULT_REGION"):
+            monkeypatch.setenv(key, env[key])
+        bucket = f"voxe-faults-{uuid.uuid4().hex[:8]}"
+        storage = S3Storage(bucket, endpoint_url=env["VOXE_S3_ENDPOINT_URL"], region="us-east-1")
+        monkeypatch.setattr(reaper, "get_storage", lambda _settings: storage)
+        storage.put_bytes(f"scenes/{recorded}/dataset.zip", b"zip")
+        proc = subprocess.Popen([sys.executable, "-c", writer, bucket, env["VOXE_S3_ENDPOINT_URL"], str(source),
+                                 orphan], cwd=REPO, stdout=subprocess.PIPE, env={**os.environ, "PYTHONPATH": str(REPO)})
+        try:
+            assert proc.stdout.readline().startswith(b"part")  # (the threads of two parts may print at once)
+        finally:
+            proc.send_signal(signal.SIGKILL)
+            proc.wait(10)
+
+        def uploads() -> list[str]:
+            return sorted(u["Key"] for u in storage.client.list_multipart_uploads(Bucket=bucket).get("Uploads", []))
+
+        assert uploads() == [f"scenes/{orphan}/dataset.zip"]
+        if server == "seaweedfs":  # (moto dates every multipart upload 2010-11-10: none is young there)
+            assert reaper.reap_orphaned_uploads(db) == []  # young: it may still be being stored
+            assert uploads() == [f"scenes/{orphan}/dataset.zip"]
+        later = system_now() + timedelta(seconds=db.orphaned_upload_age_s + 60)
+        assert reaper.reap_orphaned_uploads(db, now=later) == [orphan]
+        assert uploads() == [] and storage.list() == [f"scenes/{recorded}/dataset.zip"]
 
 
 # ---------------------------------------------------------------------------------------------- real processes

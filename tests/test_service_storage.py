@@ -61,6 +61,32 @@ def storage(request, tmp_path):
                      region="us-east-1", prefix="svc")
 
 
+def test_written_at_gives_each_keys_time_unfinished_writes_included(storage, tmp_path):
+    """The reaper's sweep of uploads no scene records reads their ages here: each listed key's, and an unfinished
+    write's (a killed local writer's temporary file; an S3 multipart upload, from its start) under its key, so the
+    parts a killed API process left are found and aborted; the store's own prefix is not in the keys."""
+    from datetime import datetime, timedelta, timezone
+
+    storage.put_bytes("scenes/a/dataset.zip", b"zip")
+    storage.put_bytes("jobs/b/x.bin", b"x")
+    if isinstance(storage, LocalStorage):
+        unfinished = "scenes/c/.dataset.zip.0123456789abcdef0123456789abcdef.tmp"
+        storage.root.joinpath(unfinished).parent.mkdir(parents=True)
+        storage.root.joinpath(unfinished).write_bytes(b"z")
+    else:
+        unfinished = "scenes/c/dataset.zip"
+        upload = storage.client.create_multipart_upload(Bucket=storage.bucket, Key=storage.prefix + unfinished)
+    try:
+        times = storage.written_at("scenes/")
+        assert times.keys() == {"scenes/a/dataset.zip", unfinished}
+        now = datetime.now(timezone.utc)
+        assert abs(times["scenes/a/dataset.zip"] - now) < timedelta(minutes=1)
+        assert storage.written_at("scenes//") == {} and storage.written_at("nothing/") == {}
+    finally:
+        if not isinstance(storage, LocalStorage):
+            storage.client.abort_multipart_upload(Bucket=storage.bucket, Key=upload["Key"], UploadId=upload["UploadId"])
+
+
 def test_put_get_range_list_delete(storage, tmp_path):
     data = bytes(range(256)) * 4100  # > one 1 MiB chunk
     source = tmp_path / "blob.bin"

@@ -135,6 +135,10 @@ class Settings(BaseSettings):
     # a storage object that answers 5xx every time must not be retried for ever.
     storage_outage_max_retries: int = Field(10, ge=0)
     reaper_interval_s: float = Field(60.0, gt=0)
+    # What an API process killed while storing an upload (or before recording its scene) left under scenes/<id>/ with
+    # no scene row, an unfinished S3 multipart upload included, is deleted by the reaper once this old: longer than
+    # any upload takes to store, so one still being written (or about to be recorded) is never taken.
+    orphaned_upload_age_s: float = Field(24 * 3600.0, gt=0)
 
     # --- webhooks (voxe_service.webhooks; sent from the API process, api/webhooks.py)
     webhook_allow_networks: str = ""  # comma-separated CIDRs a webhook may target though private (e.g. 10.0.0.0/8)

@@ -25,6 +25,7 @@ from abc import ABC, abstractmethod
 from collections.abc import Callable, Generator, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
+from datetime import datetime, timezone
 from pathlib import Path
 from typing import BinaryIO
 
@@ -57,8 +58,12 @@ class StoredObject:
 
 # The key layout: everything of a scene, a job or a reconstruction under its own prefix, so deleting
 # one is deleting a prefix. ``name`` "" gives the prefix itself.
+SCENES_PREFIX = "scenes/"
+"""What every scene's objects lie under (:func:`scene_key`)."""
+
+
 def scene_key(scene_id: str, name: str = "") -> str:
-    return f"scenes/{scene_id}/{name}"
+    return f"{SCENES_PREFIX}{scene_id}/{name}"
 
 
 def job_key(job_id: str, name: str = "") -> str:
@@ -140,6 +145,11 @@ class Storage(ABC):
 
     @abstractmethod
     def list(self, prefix: str = "") -> list[str]: ...
+
+    @abstractmethod
+    def written_at(self, prefix: str = "") -> dict[str, datetime]:
+        """When each key under ``prefix`` was last written (timezone-aware), unfinished writes included: a local
+        writer's temporary file under its own name, an S3 multipart upload under its key, from its start."""
 
     @abstractmethod
     def delete(self, key: str) -> None:
@@ -304,6 +314,15 @@ class LocalStorage(Storage):
 
     def list(self, prefix="") -> list[str]:
         return sorted(name for name, writing in self._files(prefix) if not writing)
+
+    def written_at(self, prefix="") -> dict[str, datetime]:
+        times = {}
+        for name, _writing in self._files(prefix):
+            try:
+                times[name] = datetime.fromtimestamp((self.root / name).stat().st_mtime, timezone.utc)
+            except FileNotFoundError:  # deleted (or renamed into place) since it was listed
+                continue
+        return times
 
     def delete_prefix(self, prefix: str) -> int:
         """Also removes the temporary files of writers killed mid-write under ``prefix`` (never listed)."""
@@ -572,6 +591,25 @@ class S3Storage(Storage):
             for page in paginator.paginate(Bucket=self.bucket, Prefix=self.prefix + prefix):
                 keys += [obj["Key"][len(self.prefix):] for obj in page.get("Contents", [])]
         return sorted(keys)
+
+    def written_at(self, prefix="") -> dict[str, datetime]:
+        if not _may_start_a_key(prefix):
+            return {}
+        times = {}
+        with self._as_storage_errors():
+            for page in self.client.get_paginator("list_objects_v2").paginate(Bucket=self.bucket,
+                                                                               Prefix=self.prefix + prefix):
+                times |= {obj["Key"][len(self.prefix):]: obj["LastModified"] for obj in page.get("Contents", [])}
+        try:
+            with self._as_storage_errors():
+                for page in self.client.get_paginator("list_multipart_uploads").paginate(Bucket=self.bucket,
+                                                                                          Prefix=self.prefix + prefix):
+                    for upload in page.get("Uploads", []):
+                        key = upload["Key"][len(self.prefix):]
+                        times[key] = max(times.get(key, upload["Initiated"]), upload["Initiated"])
+        except StorageError as exc:  # a role without the multipart permissions: the objects' times still count
+            log.warning("could not list the unfinished uploads under %r (%s)", prefix, exc)
+        return times
 
     def delete(self, key) -> None:
         with self._as_storage_errors():
