@@ -5112,7 +5112,7 @@ def test_the_parts_an_s3_writer_killed_mid_upload_left_go_with_its_job(tmp_path,
         proc = subprocess.Popen([sys.executable, "-c", writer, bucket, env["VOXE_S3_ENDPOINT_URL"], str(source)],
                                 cwd=REPO, stdout=subprocess.PIPE, env={**os.environ, "PYTHONPATH": str(REPO)})
         try:
-            assert proc.stdout.readline().strip() == b"part"
+            assert proc.stdout.readline().startswith(b"part")  # (two part threads may print on one line)
         finally:
             proc.send_signal(signal.SIGKILL)
             proc.wait(10)
