@@ -3525,6 +3525,21 @@ def test_a_mesh_or_a_folder_sent_as_files_without_a_name_is_named_by_it_as_a_zip
     assert given.json()["name"] == "given"
 
 
+def test_a_scene_whose_file_name_is_blank_is_named_scene_id_not_blank(client):
+    """A scene sent with no name is named by its file's name: one of spaces alone (a zip "   .zip", a mesh " .obj")
+    had been stored as the name, a scene listed as nameless, the very name a 422 refuses when it is sent. Such a scene
+    is named "scene-<id>", as one whose files name nothing."""
+    obj = b"v 0 0 0\nv 1 0 0\nv 1 1 0\nf 1 2 3\n"
+    for file_name in ("   .obj", " .obj"):
+        scene = client.post("/v1/scenes", files=[("files", (file_name, obj, "text/plain"))])
+        assert scene.status_code == 201, scene.text
+        assert scene.json()["name"] == f"scene-{scene.json()['id'][:8]}", file_name
+    archive = _zip_bytes({"m.obj": obj})
+    scene = client.post("/v1/scenes", files={"archive": ("   .zip", archive, "application/zip")})
+    assert scene.status_code == 201, scene.text
+    assert scene.json()["name"] == f"scene-{scene.json()['id'][:8]}"
+
+
 def test_a_job_created_on_a_mesh_scene_once_ready_is_told_its_ingests_warnings(client, root, monkeypatch):
     """The ingest's warnings (an OBJ's .mtl not sent: the mesh loads grey) had been told to the jobs waiting for the
     scene alone: one created once it was ready was never told, nor did the scene say it. The scene keeps them (its

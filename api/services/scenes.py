@@ -43,8 +43,9 @@ class Upload:
     def default_name(self, scene_format: str) -> str:
         """The name of a scene of ``scene_format`` sent with none: its zip's file name, or its mesh's, or the one
         folder its files are in, without suffix and control characters; "" where there is none (a folder's files
-        sent loose). A mesh or a folder sent as files (curl's ``-F files=@spot.obj``) had been named "scene-<id>", a
-        zip alone by its name."""
+        sent loose) or it is blank (a zip "   .zip": stored, it had been the blank name a 422 refuses when sent). A
+        mesh or a folder sent as files (curl's ``-F files=@spot.obj``) had been named "scene-<id>", a zip alone by
+        its name."""
         if self.archive is not None:
             stem = Path(self.archive_name or "").stem
         else:
@@ -57,7 +58,8 @@ class Upload:
                 stem = folders.pop()
             else:
                 stem = ""
-        return "".join(c for c in stem if c.isprintable())[:255]
+        name = "".join(c for c in stem if c.isprintable())[:255]
+        return name if name.strip() else ""
 
     def digests(self) -> tuple[str, str | None]:
         """sha256 of what the upload asks for (field names, file names and bytes), not of its multipart framing; a
