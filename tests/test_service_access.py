@@ -1497,3 +1497,33 @@ def test_readyz_shows_its_details_only_to_a_key_holder(auth_client, root):  # no
     checks = detailed.json()["checks"]
     assert checks["worker"] == {"ok": False, "method": "database heartbeat", "workers": []}
     assert "url" in checks["broker"] and "backend" in checks["storage"] and "model_availability" in detailed.json()
+
+
+def test_readyz_with_the_database_down_does_not_tell_a_key_holder_to_send_a_key(auth_client, monkeypatch):
+    """With the database down, /readyz cannot check a key, so it shows no details: it told an operator presenting
+    their live key to "send an API key", the one they had sent. It now says the key sent could not be checked, and
+    still shows nothing more than to a caller sending none."""
+    import contextlib
+
+    from sqlalchemy.exc import OperationalError
+
+    import api.routes.health as health
+
+    _, token = _create_key("operator")
+
+    @contextlib.contextmanager
+    def database_down():
+        raise OperationalError("SELECT 1", {}, ConnectionRefusedError("connection refused"))
+        yield  # (a generator: never reached)
+
+    monkeypatch.setattr(health, "session_scope", database_down)
+    anonymous = auth_client.get("/readyz")
+    assert anonymous.status_code == 503 and anonymous.json()["checks"]["database"] == {"ok": False}
+    assert anonymous.json()["details"] == "send an API key for each check's details and the models' availability"
+    answer = auth_client.get("/readyz", headers=bearer(token))
+    assert answer.status_code == 503
+    assert answer.json()["checks"] == anonymous.json()["checks"]
+    assert answer.json()["details"] == ("the API key sent could not be checked (the database is not reachable): each "
+                                        "check's details and the models' availability are shown to a live key's "
+                                        "holder once it is")
+    assert "connection refused" not in answer.text

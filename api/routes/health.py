@@ -76,19 +76,25 @@ def _model_report(settings: Settings) -> dict:
     return report
 
 
-def _shown_details(request: Request, settings: Settings) -> bool:
-    """Whether /readyz shows this caller its checks' details: authentication off, or a live key presented. They name
-    the deployment's internals (the storage path or bucket, the broker's URL, worker hostnames, the errors' text),
-    and /readyz needs no key: a load balancer needs only the status and which check failed."""
+_ASK_FOR_A_KEY = "send an API key for each check's details and the models' availability"
+
+
+def _hidden_because(request: Request, settings: Settings) -> str | None:
+    """Why /readyz shows this caller none of its checks' details (None: it shows them, authentication off or a live
+    key presented). They name the deployment's internals (the storage path or bucket, the broker's URL, worker
+    hostnames, the errors' text), and /readyz needs no key: a load balancer needs only the status and which check
+    failed. A key that cannot be checked (the database down) is told so: "send an API key" had answered the operator
+    who sent theirs."""
     if not settings.auth_enabled:
-        return True
+        return None
     if not (token := presented_token(request)):
-        return False
+        return _ASK_FOR_A_KEY
     try:
         with session_scope() as session:
-            return refusal(key_of_token(session, token), token) is None
+            return None if refusal(key_of_token(session, token), token) is None else _ASK_FOR_A_KEY
     except Exception:  # noqa: BLE001 - no database to check the key in: the checks say so
-        return False
+        return ("the API key sent could not be checked (the database is not reachable): each check's details and the "
+                "models' availability are shown to a live key's holder once it is")
 
 
 @router.get("/readyz", summary="Readiness: database, broker, storage and at least one worker",
@@ -122,10 +128,10 @@ def readyz(request: Request, settings: SettingsDep, queue: QueueDep, storage: St
         availability = _model_report(settings)
     except Exception as exc:  # noqa: BLE001 - the database check above says why
         availability = {"error": f"{type(exc).__name__}: {exc}"}
-    if not _shown_details(request, settings):
+    if (hidden := _hidden_because(request, settings)) is not None:
         return JSONResponse({"status": "ready" if ready else "not ready",
                              "checks": {name: {"ok": bool(result.get("ok"))} for name, result in results.items()},
-                             "details": "send an API key for each check's details and the models' availability"},
+                             "details": hidden},
                             status_code=200 if ready else 503)
     body = {
         "status": "ready" if ready else "not ready",
