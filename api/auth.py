@@ -26,7 +26,7 @@ from sqlalchemy import and_, delete, func, select, update
 from sqlalchemy.orm import Session
 from starlette.datastructures import Headers
 
-from api.http_semantics import DATABASE_UNAVAILABLE, route_path, unavailable
+from api.http_semantics import DATABASE_UNAVAILABLE, as_sent, route_path, unavailable
 from voxe_service.db import get_sessionmaker
 from voxe_service.quotas import lock_key, stored_bytes, upload_limit
 from voxe_service.models import PROCESSING, QUEUED, RUNNING, ApiKey, IdempotencyRecord, Job, utcnow
@@ -112,7 +112,7 @@ def _unread(authorization: list[str]) -> str:
     schemes = [line.strip().partition(" ")[0] for line in authorization if line.strip()]
     if any(scheme.startswith(TOKEN_PREFIX) for scheme in schemes):
         return " (Authorization holds a key without 'Bearer ' before it)"
-    others = sorted({scheme for scheme in schemes if scheme.lower() != "bearer"})
+    others = sorted({as_sent(scheme) for scheme in schemes if scheme.lower() != "bearer"})  # (quoted as written)
     return f" (Authorization's scheme {listed(others, width=20)} is not read: only Bearer is)" if others else ""
 
 

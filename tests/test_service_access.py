@@ -107,6 +107,15 @@ def test_a_key_sent_without_bearer_or_under_another_scheme_is_told_why_it_was_no
     assert auth_client.get("/v1/scenes", headers={"Authorization": f"bearer {token}"}).status_code == 200
 
 
+def test_an_authorization_scheme_sent_in_utf8_is_quoted_as_sent(auth_client):
+    """The 401 quoting an Authorization scheme it does not read quoted its UTF-8 bytes read as Latin-1, one character
+    a byte ('SchlÃ¼ssel' for "Schlüssel"), where the other messages quoting a header quote it as the client wrote it
+    (http_semantics.as_sent)."""
+    refused = auth_client.get("/v1/scenes", headers={"Authorization": "Schlüssel abc".encode()})
+    assert refused.status_code == 401
+    assert "Authorization's scheme 'Schlüssel' is not read: only Bearer is" in refused.json()["detail"]
+
+
 def test_an_expired_key_is_401_saying_it_expired_and_list_keys_shows_when(auth_client, capsys):
     """A key created with --expires-in works until then, and is refused after with a 401 naming the expiry (keys had
     never expired, and a refused one could only read "invalid or revoked"); list-keys shows each key's expiry."""
