@@ -123,8 +123,15 @@ async def method_not_allowed(request: Request, exc: StarletteHTTPException) -> R
 
 
 def media_type(request: HTTPConnection) -> str:
-    """The request's Content-Type without its parameters, lower-case; "" when none is sent."""
-    return request.headers.get("content-type", "").split(";")[0].strip().lower()
+    """The request's Content-Type without its parameters, lower-case, as written (:func:`as_sent`); "" when none is
+    sent."""
+    return as_sent(request.headers.get("content-type", "")).split(";")[0].strip().lower()
+
+
+def media_type_shown(request: HTTPConnection) -> str:
+    """The request's media type for a 415's message, cut to :data:`ID_SHOWN` characters: the whole Content-Type had
+    been quoted (5,000 characters of it sent, 5,000 back)."""
+    return shorter(media_type(request), ID_SHOWN) or "no media type"
 
 
 def sends_body(request: Request) -> bool:
@@ -161,7 +168,7 @@ def malformed_body(request: Request, exc: RequestValidationError) -> JSONRespons
     for error in exc.errors():
         if not as_json and error.get("loc") == ("body",) and error.get("type") == "model_attributes_type":
             return JSONResponse({"detail": f"the body must be sent as JSON (Content-Type: application/json), not as "
-                                           f"{sent_as or 'no media type'}"}, status_code=415)
+                                           f"{media_type_shown(request)}"}, status_code=415)
         if error.get("type") == "json_invalid":
             reason = (error.get("ctx") or {}).get("error", "JSON decode error")
             position = error.get("loc", [None, None])[-1]
@@ -295,7 +302,7 @@ class StrictRoute(APIRoute):
             sent = "a chunked body"
         else:
             return
-        sent_as = f" of {media_type(request)}" if media_type(request) else ""
+        sent_as = f" of {media_type_shown(request)}" if media_type(request) else ""
         raise HTTPException(415, f"{request.method} {self.path} takes no body: send none (got {sent}{sent_as})")
 
     def get_route_handler(self):

@@ -426,6 +426,22 @@ def test_malformed_json_is_a_documented_400(client, spec):
     assert (response.status_code, response.json()["detail"][0]["type"]) == (422, "model_attributes_type")
 
 
+def test_a_415_quotes_the_media_type_sent_cut_short_and_as_written(client):
+    """The 415s naming the media type sent (a body not sent as JSON, an upload not sent as a form, a body sent to an
+    operation taking none) quoted the whole Content-Type, 5,000 characters of it back in the message, and its UTF-8
+    read as Latin-1 ("text/plän" as 'text/plã¤n'). They quote it as written, cut as the other quoted headers are."""
+    long_type = "text/" + "x" * 5000
+    for path, said in (("/v1/jobs", "the body must be sent as JSON (Content-Type: application/json), not as "),
+                       ("/v1/scenes", "the body must be sent as a form (multipart/form-data, as curl -F sends it), "
+                                      "not as "),
+                       ("/v1/jobs/x/cancel", "POST /v1/jobs/{job_id}/cancel takes no body: send none (got 2 bytes of ")):
+        for sent, shown in ((long_type, "text/" + "x" * 95 + "..."), ("text/plän", "text/plän")):
+            response = client.post(path, content=b"{}", headers={"content-type": sent.encode()})
+            assert response.status_code == 415, (path, response.text[:200])
+            detail = response.json()["detail"]
+            assert detail.startswith(said + shown) and len(detail) < 300, (path, detail[:300])
+
+
 def test_an_upload_not_sent_as_a_form_is_a_documented_415_and_a_broken_form_a_documented_400(client, spec):
     """A raw zip or JSON posted to /v1/scenes had been read as an empty form: a 422 telling to send an 'archive' it
     had been sent; sent as a urlencoded form (curl --data-binary's default), which cannot carry a file, as field

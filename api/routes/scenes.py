@@ -10,8 +10,8 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from api.auth import mark_replayed, replayed_answer
 from api.deps import CurrentKey, IdempotencyKey, QueueDep, SessionDep, SettingsDep, StorageDep
-from api.http_semantics import (FORM_MEDIA_TYPE, StrictRoute, media_type, refuse_encoded, sends_body,
-                                takes_several)
+from api.http_semantics import (FORM_MEDIA_TYPE, StrictRoute, media_type, media_type_shown, refuse_encoded,
+                                sends_body, takes_several)
 from api.paging import PageQuery, page_query
 from api.schemas import SCENE_NAME_PATTERN, Page, ReconstructionOut, SceneOut, scene_name
 from api.services import scenes
@@ -52,7 +52,7 @@ class UploadFilesRoute(StrictRoute):
             if (sent_as := media_type(request)) != FORM_MEDIA_TYPE and (sent_as or sends_body(request)):
                 raise HTTPException(status.HTTP_415_UNSUPPORTED_MEDIA_TYPE,
                                     f"the body must be sent as a form ({FORM_MEDIA_TYPE}, as curl -F sends it), not "
-                                    f"as {sent_as or 'no media type'}")
+                                    f"as {media_type_shown(request)}")
             max_files = get_settings().max_upload_files
             try:
                 form = await request.form(max_files=max_files)
