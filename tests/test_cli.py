@@ -250,6 +250,23 @@ def test_a_waited_sweeps_table_on_a_stdout_that_cannot_encode_it_is_printed_esca
     assert "error" not in capsys.readouterr().err
 
 
+@pytest.mark.parametrize("command", [[], ["edit"], ["refine"], ["reconstruct"], ["render"]])
+def test_a_help_on_a_stdout_that_cannot_encode_it_is_printed_escaped(monkeypatch, command):
+    """Regression: a help naming §, λ, → or ° (voxe --help, voxe refine --help) on an ASCII stdout
+    (PYTHONIOENCODING=ascii) raised UnicodeEncodeError, a traceback and exit 1: only a command's run escaped them."""
+    import io
+
+    ascii_out = io.TextIOWrapper(io.BytesIO(), encoding="ascii")
+    monkeypatch.setattr(sys, "stdout", ascii_out)
+    with pytest.raises(SystemExit) as done:
+        main([*command, "--help"])
+    assert done.value.code == 0
+    ascii_out.flush()
+    shown = ascii_out.buffer.getvalue().decode("ascii")
+    assert shown.startswith("usage: voxe") and re.search(r"\\(x[0-9a-f]{2}|u[0-9a-f]{4})", shown)
+    assert ascii_out.errors == "strict"
+
+
 @pytest.mark.parametrize("end, code", [("succeeded", 0), ("failed", 1), ("canceled", 1)])
 def test_a_waited_sweep_exits_1_unless_it_succeeded(monkeypatch, capsys, tmp_path, end, code):
     """As voxe wait does for a job: a failed sweep had exited 0, saying nothing of its failed jobs."""

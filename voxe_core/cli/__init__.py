@@ -61,11 +61,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of ``voxe``; returns the exit status (0 ok, 2 bad input, 3 the job service failed or was
     not reached, 130 interrupted, 143 stopped by SIGTERM, 141 its output's reader gone). A command that does not
     succeed leaves no folder it made and wrote nothing into."""
-    args = build_parser().parse_args(argv)
     status = None
-    with (removing_made_folders_unless(lambda: status == 0), library_progress_bars_off(args.quiet),
-          sigterm_as_ctrl_c(), _stdout_escaping_what_it_cannot_encode()):
-        status = _run(args)
+    with _stdout_escaping_what_it_cannot_encode():  # (the help too: `voxe refine --help` had raised on a Latin-1 one)
+        args = build_parser().parse_args(argv)
+        with (removing_made_folders_unless(lambda: status == 0), library_progress_bars_off(args.quiet),
+              sigterm_as_ctrl_c()):
+            status = _run(args)
     return interrupted_status() if status == EXIT_INTERRUPTED else status
 
 
@@ -73,7 +74,8 @@ def main(argv: Sequence[str] | None = None) -> int:
 def _stdout_escaping_what_it_cannot_encode() -> Iterator[None]:
     """stdout writing a character its encoding lacks as a backslash escape, as Python's stderr does: a table naming
     "a café ☕" on a Latin-1 or ASCII stdout had raised UnicodeEncodeError once the work was done (``voxe sweep
-    --wait``'s table: "error: 'latin-1' codec can't encode character", exit 2 for a sweep that succeeded)."""
+    --wait``'s table: "error: 'latin-1' codec can't encode character", exit 2 for a sweep that succeeded), and a
+    help naming λ or → (``voxe refine --help``) with a traceback, exit 1."""
     stdout = sys.stdout
     if getattr(stdout, "errors", None) != "strict" or not hasattr(stdout, "reconfigure"):
         yield
