@@ -523,6 +523,42 @@ def test_a_folder_without_model_index_is_present_as_it_is_loaded(tiny_path, tmp_
     assert not diffusers_model_present(str(folder))
 
 
+def test_a_cached_model_whose_weights_cannot_be_read_is_told_to_be_fetched_again(tiny_path, tmp_path, monkeypatch):
+    """A hub id whose files are all in the cache, one of them damaged (the UNet's weights cut short: diffusers'
+    "Unable to load weights from checkpoint file"), had been told "could not be fetched from the Hugging Face hub:
+    check the model id" (downloads allowed) or "not available offline: download them once" (offline), though the model
+    is cached and nothing was to be fetched."""
+    from huggingface_hub import constants
+
+    from diffusers import UNet2DConditionModel
+
+    from voxe_core.guidance.loading import diffusers_model_present, load_stable_diffusion
+
+    monkeypatch.setattr(constants, "HF_HUB_CACHE", str(tmp_path / "cache"))
+    repo = tmp_path / "cache" / "models--owner--sd"
+    (repo / "refs").mkdir(parents=True)
+    (repo / "refs" / "main").write_text("abc123")
+    snapshot = repo / "snapshots" / "abc123"
+    shutil.copytree(tiny_path, snapshot)
+    weights = next((snapshot / "unet").glob("*.safetensors"))
+    weights.write_bytes(weights.read_bytes()[:100])
+    assert diffusers_model_present("owner/sd")
+    told = ("Stable Diffusion weights 'owner/sd' are in the Hugging Face cache (HF_HOME) but could not be read: a file "
+            "of them is damaged (a download cut short, a disk error) or not this model's; download them again with "
+            "`hf download owner/sd --force-download`. Underlying error: ")
+
+    def damaged(*args, **kwargs):  # (diffusers' answer for that file, loading it from the cache)
+        raise OSError(f"Unable to load weights from checkpoint file for '{weights}'")
+
+    monkeypatch.setattr(UNet2DConditionModel, "from_pretrained", damaged)
+    with pytest.raises(ModelNotAvailableError) as offline:
+        load_stable_diffusion("owner/sd", torch.float32, local_files_only=True)
+    assert str(offline.value).startswith(told) and str(weights) in str(offline.value)
+    with pytest.raises(ModelNotAvailableError) as online:
+        load_stable_diffusion("owner/sd", torch.float32, local_files_only=False)
+    assert str(online.value).startswith(told) and "check the model id" not in str(online.value)
+
+
 def test_a_single_file_checkpoint_is_told_to_be_converted_not_missing(tmp_path):
     """A single-file Stable Diffusion checkpoint (what many tools save) had been told "no folder <the file>"."""
     checkpoint = tmp_path / "v1-5-pruned.safetensors"

@@ -42,13 +42,21 @@ def offline_env() -> bool:
     return os.environ.get("HF_HUB_OFFLINE", "").strip().lower() in ("1", "true", "yes", "on")
 
 
-def not_available_message(model: str, cause: BaseException | None, offline: bool = True) -> str:
+def not_available_message(model: str, cause: BaseException | None, offline: bool = True, cached: bool = False) -> str:
     """The error text for missing weights: which model, how to get it, and what failed underneath. A folder is
     told to hold the model (a hub download of "./models/sd" had been its remedy), a hub id how to cache it, or, where
     downloads were allowed (``offline`` False), to check its id: a mistyped one had been told it was "not available
-    offline" and to download it, though the hub had been asked and has no such model."""
+    offline" and to download it, though the hub had been asked and has no such model. A hub id whose files are all in
+    the cache (``cached``) failed on reading them, and is told to fetch them again: a damaged weights file had been
+    told to check the model id (or that the model was not available offline)."""
     if model == TINY_MODEL and local_path(model) is None:
         msg = f"Stable Diffusion weights '{model}' are not available: {tiny_model_note('`voxe build-tiny-model DIR`')}."
+    elif cached and local_path(model) is None:
+        msg = (
+            f"Stable Diffusion weights '{model}' are in the Hugging Face cache (HF_HOME) but could not be read: a "
+            f"file of them is damaged (a download cut short, a disk error) or not this model's; download them again "
+            f"with `hf download {model} --force-download`."
+        )
     elif local_path(model) is not None:
         msg = (
             f"Stable Diffusion weights '{model}' are not available: that local folder must hold the whole model in "
@@ -432,7 +440,8 @@ def load_stable_diffusion(model: str, dtype, local_files_only: bool | None = Non
     except loading_errors() as exc:
         if is_out_of_memory(exc):
             raise
-        raise ModelNotAvailableError(not_available_message(model, exc, bool(local_files_only))) from exc
+        cached = folder is None and diffusers_model_present(model, revision)  # (nothing was to be fetched)
+        raise ModelNotAvailableError(not_available_message(model, exc, bool(local_files_only), cached)) from exc
     if not tokenizer_fits(tokenizer, text_encoder.config.vocab_size):
         raise ModelNotAvailableError(
             not_available_message(
