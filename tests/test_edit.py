@@ -627,6 +627,37 @@ def test_a_guidance_overflowing_in_part_is_reported_and_edits_on(small_sphere, t
                                  "step's share: its sds_nonfinite_fraction)")]
 
 
+def test_a_guidance_overflowing_in_part_is_said_once_across_a_resume(small_sphere, tiny_guidance, monkeypatch,
+                                                                     tmp_path):
+    """A run resumed past its first zeroed step (a worker restarted) had been told again at its next one ("iteration
+    4: 25% ..." after "iteration 1: 25% ..."): whether it was said is carried in the checkpoint, as the count of wholly
+    non-finite steps is; a damaged value is a FormatError, a checkpoint older than it warns as before."""
+    from voxe_core.tensorio import FormatError, save_tensors
+
+    _overflowing_unet(tiny_guidance, monkeypatch, 0)
+    checkpoint, warnings = tmp_path / "c.safetensors", []
+    callbacks = Callbacks(on_warning=lambda stage, text: warnings.append(text))
+    config = EditConfig(iterations=3, render_size=16)
+    edit(small_sphere, "a dog", tiny_guidance, config, callbacks, checkpoint_path=checkpoint)
+    assert load_edit_checkpoint(checkpoint)[1]["zeroed_said"] is True
+    edit(small_sphere, "a dog", tiny_guidance, dataclasses.replace(config, iterations=5), callbacks,
+         resume_from=checkpoint)
+    assert [text.split(":")[0] for text in warnings] == ["iteration 1"]
+    tensors, meta = load_edit_checkpoint(checkpoint)
+    for damaged in (1, "true", None):
+        save_tensors(tmp_path / "d.safetensors", tensors, kind=edit_module.EDIT_CHECKPOINT_KIND,
+                     version=edit_module.EDIT_CHECKPOINT_VERSION, meta={**meta, "zeroed_said": damaged})
+        with pytest.raises(FormatError, match=re.escape(f"damaged checkpoint: its zeroed_said is {damaged!r}, not")):
+            edit(small_sphere, "a dog", tiny_guidance, dataclasses.replace(config, iterations=5),
+                 resume_from=tmp_path / "d.safetensors")
+    older = {name: value for name, value in meta.items() if name != "zeroed_said"}
+    save_tensors(tmp_path / "o.safetensors", tensors, kind=edit_module.EDIT_CHECKPOINT_KIND,
+                 version=edit_module.EDIT_CHECKPOINT_VERSION, meta=older)
+    edit(small_sphere, "a dog", tiny_guidance, dataclasses.replace(config, iterations=5), callbacks,
+         resume_from=tmp_path / "o.safetensors")
+    assert [text.split(":")[0] for text in warnings] == ["iteration 1", "iteration 4"]
+
+
 def test_a_guidance_that_never_overflows_warns_of_nothing(small_sphere, tiny_guidance):
     warnings = []
     edit(small_sphere, "a dog", tiny_guidance, EditConfig(iterations=2, render_size=16),

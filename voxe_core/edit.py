@@ -561,8 +561,9 @@ def edit(
     and a guidance whose SDS gradient was wholly non-finite
     (``nonfinite_fraction`` 1) for :data:`MAX_NONFINITE_GUIDANCE_STEPS` steps in a row, the last one's progress not
     reported (a float16 UNet overflowing: G_e would take no more SDS steps). The first step whose SDS gradient had
-    any entry zeroed is said once, through ``callbacks.warning``: a partly overflowing UNet (a share of the gradient
-    lost on every step) had been said only in the progress info, which neither a job nor the CLI shows.
+    any entry zeroed is said once (across resumes too), through ``callbacks.warning``: a partly overflowing UNet (a
+    share of the gradient lost on every step) had been said only in the progress info, which neither a job nor the CLI
+    shows.
     """
     if not str(prompt).strip():
         raise ValueError("the edit prompt is empty")
@@ -629,7 +630,9 @@ def edit(
     # Consecutive steps whose SDS gradient was wholly non-finite, carried across a resume (in the checkpoint's header):
     # restarted there, a run overflowing on every step that was resumed more often than every 10 steps never stopped.
     nonfinite_steps = 0
-    zeroed_said = False  # whether the first step with zeroed SDS gradient entries was said (once a run)
+    # Whether the first step with zeroed SDS gradient entries was said, carried across a resume as that count: a
+    # job resumed past it (a worker restarted) had been told again at its next such step.
+    zeroed_said = False
     if resume_from is not None:
         tensors, meta = load_edit_checkpoint(resume_from)
         if tuple(tensors["features"].shape[:3]) != initial_grid.resolution:  # (its header said otherwise, or nothing)
@@ -663,6 +666,10 @@ def edit(
         if isinstance(nonfinite_steps, bool) or not isinstance(nonfinite_steps, int) or not 0 <= nonfinite_steps <= most:
             raise FormatError(f"{resume_from}: damaged checkpoint: its nonfinite_steps is {nonfinite_steps!r}, not a "
                               f"count of steps from 0 to {most} (at iteration {start})")
+        zeroed_said = meta.get("zeroed_said", False)  # (a checkpoint older than the field: not said)
+        if not isinstance(zeroed_said, bool):
+            raise FormatError(f"{resume_from}: damaged checkpoint: its zeroed_said is {zeroed_said!r}, not true or "
+                              "false")
         host_gen.set_state(tensors["rng_host"])
         state = tensors["rng_device"]
         if meta.get("device") == device.type or ("device" not in meta and  # (older: told by its state's size)
@@ -688,7 +695,8 @@ def edit(
     def checkpoint(done: int) -> None:
         check_finite(done)
         save_edit_checkpoint(checkpoint_path, grid, optimizer, generators, done,
-                             {**run_meta, "nonfinite_steps": nonfinite_steps}, views_record)
+                             {**run_meta, "nonfinite_steps": nonfinite_steps, "zeroed_said": zeroed_said},
+                             views_record)
         callbacks.checkpoint_written(str(checkpoint_path))
 
     embeddings: dict[str | None, torch.Tensor] = {}
