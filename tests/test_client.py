@@ -1742,7 +1742,8 @@ def test_upload_scene_sends_the_display_name_as_the_name_field_and_keeps_the_fil
 def test_a_mesh_uploaded_without_a_name_is_named_by_its_file_as_a_zip_is(api, tmp_path, capsys):
     """The service names an upload by its zip's name, but a mesh goes as files, so ``upload_scene("spot.obj")`` and
     ``voxe submit --upload spot.obj`` had made a scene named "scene-1a2b3c4d", the mesh's name nowhere in the
-    listing. It is named by the mesh's file name without its suffix, as a zip is; a name given stays."""
+    listing. It is named (by the service) by the mesh's file name without its suffix, as a zip is, "scene-<id>"
+    where that is blank; a name given stays."""
     import zipfile
 
     from voxe_core.cli import main
@@ -1758,6 +1759,9 @@ def test_a_mesh_uploaded_without_a_name_is_named_by_its_file_as_a_zip_is(api, tm
         assert main(["submit", "a plane", "--upload", str(tmp_path / "my plane.v2.obj"), "--api", url]) == 0
         job = client.get_job(capsys.readouterr().out.strip())
         assert client.get_scene(job["scene_id"])["name"] == "my plane.v2"
+        (tmp_path / " .obj").write_text(PLANE_OBJ)  # (a blank stem: the client had sent the name " ", refused 422)
+        blank = client.upload_scene(tmp_path / " .obj")
+        assert blank["name"] == f"scene-{blank['id'][:8]}"
 
 
 def test_voxe_submit_names_the_scene_it_uploads_as_asked(api, tmp_path, capsys):

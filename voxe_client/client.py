@@ -305,8 +305,8 @@ class Client:
                      texture: str | os.PathLike | None = None, idempotency_key: str | None = None,
                      mesh_shading: str | None = None, mesh_up_axis: str | None = None) -> dict:
         """``POST /v1/scenes``: a dataset zip, or one mesh file (.obj / .ply), sent under its own file name (the
-        service reads a mesh's kind from it), with ``name`` the scene's display name (by default the zip's or the
-        mesh's file name without its suffix); the scene, ``processing``.
+        service reads a mesh's kind from it), with ``name`` the scene's display name (by default the service names it
+        by the zip's or the mesh's file name without its suffix); the scene, ``processing``.
 
         A mesh goes with the files that colour it: an OBJ's .mtl and the texture that names
         (:func:`obj_upload_files`), a PLY's texture its header names (:func:`ply_upload_files`); or ``texture``, an
@@ -330,9 +330,6 @@ class Client:
                 raise ValueError(f"cannot upload {shown}: its name is not UTF-8, which the upload sends names as: "
                                  "rename it") from None
         field = "archive" if path.suffix.lower() == ".zip" else "files"
-        if not name and kind in MESH_UPLOADS:  # (named "scene-<id>" had been: the service names an upload by its
-            # zip's name only, and a mesh goes as files; the web UI names a folder's files by the folder)
-            name = "".join(c for c in path.stem if c.isprintable())
         form = {"name": name} if name else {}
         form.update((field_name, value) for field_name, value in (("mesh_shading", mesh_shading),
                                                                   ("mesh_up_axis", mesh_up_axis)) if value is not None)
