@@ -1244,6 +1244,59 @@ def test_a_count_too_large_is_refused_naming_its_option_and_its_limit(command, f
             capsys.readouterr().err
 
 
+def _integer_options() -> list[tuple[str, str]]:
+    """Every (command, option) of ``voxe`` whose value is an integer: the counts, ``--seed`` and the counts the
+    service bounds (``positive_int_at_most``)."""
+    import argparse
+
+    from voxe_core.cli import build_parser
+    from voxe_core.cli.common import seed
+
+    commands = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction))
+    return _count_options() + [
+        (name, action.option_strings[0]) for name, parser in commands.choices.items() for action in parser._actions
+        if action.option_strings and (action.type is seed or getattr(action.type, "__qualname__", "").startswith(
+            "positive_int_at_most."))]
+
+
+def _option_type(command: str, flag: str):
+    import argparse
+
+    from voxe_core.cli import build_parser
+
+    commands = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction))
+    return next(a.type for a in commands.choices[command]._actions if flag in a.option_strings)
+
+
+@pytest.mark.parametrize("command, flag", _integer_options())
+def test_an_integer_option_takes_only_digits_as_the_service_does(command, flag, capsys):
+    """Python's int() had taken ``1_0`` as 10, ``+5``, `` 5`` and ``5 `` as 5 and a full-width ``５`` as 5, where the
+    service answers a query's ``limit=1_0`` with a 422 (api.paging.DIGITS_ONLY): a typo run as though it were meant.
+    Each is refused naming the option (a list's spaces around its commas aside); plain digits are still read."""
+    from voxe_core.cli.common import int_list
+
+    a_list = _option_type(command, flag) is int_list
+    for value in ("1_0", "+5", "\uff15", "5.0", *(() if a_list else (" 5", "5 "))):
+        with pytest.raises(SystemExit) as exc:
+            main([command, f"{flag}={value}"])
+        err = capsys.readouterr().err
+        assert exc.value.code == 2 and f"error: argument {flag}: expected " in err and f"{value!r}" in err, err
+    with pytest.raises(SystemExit) as exc:  # a plain value passes the option (the command is refused elsewhere)
+        main([command, f"{flag}=5", "--no-such-option"])
+    assert f"argument {flag}" not in capsys.readouterr().err
+
+
+def test_an_integer_list_option_takes_digits_with_spaces_around_its_commas():
+    import argparse
+
+    from voxe_core.cli.common import int_list
+
+    assert int_list("64, 128,256") == [64, 128, 256]
+    for text in ("64,1_28", "+64", "64,\uff15"):
+        with pytest.raises(argparse.ArgumentTypeError, match="written in the digits 0-9"):
+            int_list(text)
+
+
 def test_the_count_options_found_are_those_a_huge_value_had_failed(sphere_file, tmp_path, capsys):
     """The options listed above include those that had failed unnamed; a count at the limit is taken."""
     options = _count_options()

@@ -237,11 +237,28 @@ def _at_most_max_count(value: int) -> int:
     return value
 
 
-def int_list(text: str) -> list[int]:
+_DIGITS = re.compile(r"-?[0-9]+")
+
+
+def _integer(text: str) -> int:
+    """An integer option as written: the digits 0-9, an optional minus, as the service reads a query's integers
+    (api.paging's DIGITS_ONLY). ``int`` had taken ``1_0`` as 10, ``+5`` and `` 5`` as 5 and ``５`` (full width) as 5:
+    a typo run as though it were meant."""
+    if not _DIGITS.fullmatch(text):
+        raise argparse.ArgumentTypeError(f"expected a whole number written in the digits 0-9, got {text!r}")
     try:
-        values = [int(v) for v in text.split(",") if v.strip()]
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected an integer or a comma-separated list of integers, got {text!r}")
+        return int(text)
+    except ValueError:  # past Python's int-string limit
+        raise argparse.ArgumentTypeError(f"has more than {sys.get_int_max_str_digits()} digits") from None
+
+
+def int_list(text: str) -> list[int]:
+    """One integer or a comma-separated list of them (spaces around the commas allowed), each as ``_integer``."""
+    items = [v.strip() for v in text.split(",") if v.strip()]
+    if not all(_DIGITS.fullmatch(v) for v in items):
+        raise argparse.ArgumentTypeError(f"expected an integer or a comma-separated list of integers written in the "
+                                         f"digits 0-9, got {text!r}")
+    values = [_integer(v) for v in items]
     if not values or any(v < 0 for v in values):
         raise argparse.ArgumentTypeError(f"expected non-negative integers, got {text!r}")
     for value in values:
@@ -257,11 +274,11 @@ def one_or_list(values: list[int] | None) -> int | list[int] | None:
 def whole_number(text: str) -> int:
     """A count whose range a config checks (``said_by_option``): its option type had said a second, narrower rule
     (``voxe evaluate --views 0``: "must be at least 1", then ``--views 1``: "needs at least 2")."""
-    return _at_most_max_count(int(text))
+    return _at_most_max_count(_integer(text))
 
 
 def positive_int(text: str) -> int:
-    value = int(text)
+    value = _integer(text)
     if value < 1:
         raise argparse.ArgumentTypeError(f"must be at least 1, got {value}")
     return _at_most_max_count(value)
@@ -322,7 +339,7 @@ def said_by_option(options: dict[str, str]) -> Iterator[None]:
 
 
 def non_negative_int(text: str) -> int:
-    value = int(text)
+    value = _integer(text)
     if value < 0:
         raise argparse.ArgumentTypeError(f"must be at least 0, got {value}")
     return _at_most_max_count(value)
@@ -330,7 +347,7 @@ def non_negative_int(text: str) -> int:
 
 def seed(text: str) -> int:
     """A ``--seed``: the service's range, refused here rather than by torch after the data is loaded."""
-    value = int(text)
+    value = _integer(text)
     if not 0 <= value <= MAX_SEED:
         raise argparse.ArgumentTypeError(f"must be between 0 and {MAX_SEED}, got {value}")
     return value
