@@ -1177,6 +1177,19 @@ def test_the_other_commands_real_valued_options_refuse_a_value_that_is_no_finite
             assert f"error: argument {option}: must be a finite number, got {value!r}" in capsys.readouterr().err
 
 
+def test_an_output_suffix_no_mesh_or_video_takes_is_refused_naming_the_option(tmp_path, capsys):
+    """``voxe export-mesh --out m.xyz`` had said "unsupported mesh suffix '.xyz'" and ``voxe turntable --out t.xyz``
+    "unsupported video suffix ...": neither named --out (``convert-grid`` does), nor export-mesh the path."""
+    grid = str(tmp_path / "missing.safetensors")
+    for command, what, choices in ((["export-mesh", grid], "mesh", ".ply, .glb, .obj"),
+                                   (["turntable", grid], "video", ".mp4, .gif")):
+        out = tmp_path / "out.xyz"
+        assert main([*command, "--out", str(out)]) == 2
+        assert (f"--out: unsupported {what} suffix '.xyz' for {out}; use one of {choices}"
+                in capsys.readouterr().err)
+        assert not out.exists()
+
+
 @pytest.mark.parametrize("text, message", [
     ('{"a": ' * 5000 + "1" + "}" * 5000, "its arrays or objects nest too deeply"),  # had been a RecursionError
     # had been argparse's "invalid _json_object value: '{...}'", quoting the whole text

@@ -63,7 +63,8 @@ def cmd_export_mesh(args) -> int:
     from voxe_core.export import MESH_SUFFIXES, extract_mesh, save_mesh
 
     if args.out.suffix.lower() not in MESH_SUFFIXES:
-        raise ValueError(f"unsupported mesh suffix {args.out.suffix!r}; use one of {', '.join(MESH_SUFFIXES)}")
+        raise ValueError(f"--out: unsupported mesh suffix {args.out.suffix!r} for {args.out}; use one of "
+                         f"{', '.join(MESH_SUFFIXES)}")
     device = check_device(args)
     writable_file(args.out)
     if args.out.suffix.lower() == ".obj":  # and the material library beside it, before the mesh is made

@@ -184,10 +184,13 @@ def _report_metrics(psnr_values, ssim_values, scene, names, out_dir: Path) -> No
 def cmd_turntable(args) -> int:
     from voxe_core.backbones import load_grid
     from voxe_core.export import (
-        GIF_MIN_DELAY_CS, check_video_output, check_video_size, gif_timeline, iter_views, turntable_cameras,
-        write_video,
+        GIF_MIN_DELAY_CS, VIDEO_SUFFIXES, check_video_output, check_video_size, gif_timeline, iter_views,
+        turntable_cameras, write_video,
     )
 
+    if args.out.suffix.lower() not in VIDEO_SUFFIXES:  # (check_video_output's rule, said naming the option)
+        raise ValueError(f"--out: unsupported video suffix {args.out.suffix!r} for {args.out}; use one of "
+                         f"{', '.join(VIDEO_SUFFIXES)}")
     check_video_output(args.out, args.fps)  # fail before rendering, not after
     check_video_size(args.out, args.size, args.size)
     check_elevation(args.elevation)
