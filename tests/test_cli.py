@@ -1442,6 +1442,48 @@ def test_build_tiny_model_refuses_a_folder_holding_another_model_and_rebuilds_it
     assert (tiny / "unet" / "diffusion_pytorch_model.safetensors").read_bytes() != first
 
 
+def test_a_tiny_model_rebuild_failing_part_way_leaves_the_earlier_model_whole(tmp_path, monkeypatch):
+    """The rebuild had written in place: one failing (here a full disk) or killed as it saved the text encoder left
+    the new UNet and VAE beside the earlier text encoder and model_index.json, a mix that loaded as a whole model."""
+    from transformers import CLIPTextModel
+
+    from voxe_core.tiny_sd import build_tiny_stable_diffusion
+
+    tiny = tmp_path / "tiny"
+    build_tiny_stable_diffusion(tiny, seed=1)
+    before = {str(p.relative_to(tiny)): p.read_bytes() for p in tiny.rglob("*") if p.is_file()}
+
+    def disk_full(self, *args, **kwargs):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(CLIPTextModel, "save_pretrained", disk_full)
+    with pytest.raises(OSError, match="No space left"):
+        build_tiny_stable_diffusion(tiny, seed=2)
+    assert {str(p.relative_to(tiny)): p.read_bytes() for p in tiny.rglob("*") if p.is_file()} == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["tiny"]  # no staging folder left beside it
+    monkeypatch.undo()
+    assert build_tiny_stable_diffusion(tiny, seed=2) == tiny
+    after = (tiny / "unet" / "diffusion_pytorch_model.safetensors").read_bytes()
+    assert after != before["unet/diffusion_pytorch_model.safetensors"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["tiny"]
+
+
+def test_build_tiny_model_takes_a_folder_holding_only_a_file_managers_files(tmp_path, capsys):
+    """A folder made in Finder (holding only .DS_Store) had been refused as holding another model's files; a folder
+    holding another hidden file (a .git) is still refused: building would replace it."""
+    finder = tmp_path / "finder"
+    finder.mkdir(mode=0o750)
+    (finder / ".DS_Store").write_bytes(b"Bud1")
+    assert main(["build-tiny-model", str(finder)]) == 0
+    assert (finder / "model_index.json").is_file() and not (finder / ".DS_Store").exists()
+    assert finder.stat().st_mode & 0o777 == 0o750  # the folder's own permissions kept
+    repo = tmp_path / "repo"
+    (repo / ".git").mkdir(parents=True)
+    assert main(["build-tiny-model", str(repo)]) == 2
+    assert f"{repo} already holds .git, not a tiny model" in capsys.readouterr().err
+    assert [p.name for p in repo.iterdir()] == [".git"]
+
+
 def test_bad_data_is_said_as_a_dataset_error_and_a_bad_grid_as_an_error(tmp_path, capsys):
     """The one-line message names which input was bad: found without importing the dataset module where no command
     had (``voxe status`` must not load torch to say its error)."""

@@ -31,11 +31,16 @@ Deterministic for a seed; about 3.5 MB on disk.
 from __future__ import annotations
 
 import json
+import os
 import re
+import secrets
+import shutil
 import stat
 from pathlib import Path
 
 import torch
+
+from voxe_core.files import partial_path
 
 # Whole-word tokens of the tiny vocabulary. Anything else still tokenises
 # through the byte-level fallback (several sub-tokens per word).
@@ -169,20 +174,61 @@ def build_tiny_stable_diffusion(path, seed: int = 0) -> Path:
     ``StableDiffusionGuidance.from_pretrained(path)`` exactly like real
     weights. Images are 64x64 (16x16x4 latents).
 
-    A ``path`` holding anything but a tiny model (an earlier build, rebuilt) is refused, FileExistsError: the
-    build had written its files among another model's (a stale sharded index beside the new weights, which loading
-    then read). Refused, not emptied: the folder may be the user's real weights.
+    A ``path`` holding anything but a tiny model (an earlier build, rebuilt) or a file manager's
+    :data:`FOLDER_METADATA_FILES` is refused, FileExistsError: the build had written its files among another model's
+    (a stale sharded index beside the new weights, which loading then read). Refused, not emptied: the folder may be
+    the user's real weights. The model is built in a hidden folder beside ``path`` and then takes its place
+    (:func:`_put_in_place`): a build killed or failing part way had left a half-rewritten model, earlier weights
+    beside new ones, that loaded as a whole one (or, on a first build, a folder the next build refused).
     """
-    import diffusers
-    from diffusers import AutoencoderKL, DDIMScheduler, UNet2DConditionModel
-    from transformers import CLIPTextConfig, CLIPTextModel
-
     root = Path(path)
     root.mkdir(parents=True, exist_ok=True)
-    if not _tiny_model(root) and (held := sorted(entry.name for entry in root.iterdir())):
+    if not _tiny_model(root) and (held := sorted(entry.name for entry in root.iterdir()
+                                                 if entry.name not in FOLDER_METADATA_FILES)):
         raise FileExistsError(f"{root} already holds {', '.join(held[:5])}{', ...' if len(held) > 5 else ''}, not a "
                               "tiny model: the tiny model's files would be mixed with those; give an empty or new "
                               "folder")
+    staging = partial_path(Path(os.path.abspath(root)), secrets.token_hex(4))
+    staging.mkdir()
+    try:
+        _write_tiny_stable_diffusion(staging, seed)
+        _put_in_place(staging, root)
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+    return root
+
+
+FOLDER_METADATA_FILES = frozenset({".DS_Store", "Thumbs.db", "desktop.ini"})
+"""Files a file manager writes into a folder it shows (macOS Finder, Windows Explorer): a folder holding only these
+is empty to the user, and is built into (they had had it refused as holding another model's files)."""
+
+
+def _put_in_place(staging: Path, root: Path) -> None:
+    """The folder ``staging`` renamed to ``root`` (empty, a file manager's files aside, or an earlier tiny model),
+    keeping ``root``'s permissions: over an empty one in one rename; else ``root`` is first renamed aside, then
+    removed once the new one is in place (put back where that rename fails), so that no moment leaves a mix of two
+    builds under ``root``."""
+    os.chmod(staging, stat.S_IMODE(root.stat().st_mode))
+    for name in FOLDER_METADATA_FILES:
+        (root / name).unlink(missing_ok=True)
+    if not any(root.iterdir()):
+        os.replace(staging, root)
+        return
+    aside = partial_path(Path(os.path.abspath(root)), secrets.token_hex(4))
+    os.rename(root, aside)
+    try:
+        os.rename(staging, root)
+    except OSError:
+        os.rename(aside, root)
+        raise
+    shutil.rmtree(aside, ignore_errors=True)
+
+
+def _write_tiny_stable_diffusion(root: Path, seed: int) -> None:
+    """The tiny model's files, written into the empty folder ``root``."""
+    import diffusers
+    from diffusers import AutoencoderKL, DDIMScheduler, UNet2DConditionModel
+    from transformers import CLIPTextConfig, CLIPTextModel
 
     vocab = _write_tokenizer(root / "tokenizer", TINY_VOCAB_WORDS)
 
@@ -269,7 +315,6 @@ def build_tiny_stable_diffusion(path, seed: int = 0) -> Path:
     mode = stat.S_IMODE((root / "README.md").stat().st_mode)  # what a new file gets here (the umask's)
     for weights in root.rglob("*.safetensors"):  # safetensors renames its own 0600 files into place
         weights.chmod(mode)
-    return root
 
 
 def _tiny_model(root: Path) -> bool:
