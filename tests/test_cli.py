@@ -1299,6 +1299,35 @@ def test_an_integer_option_takes_only_digits_as_the_service_does(command, flag, 
     assert f"argument {flag}" not in capsys.readouterr().err
 
 
+def _real_options() -> list[tuple[str, str]]:
+    """Every (command, option) of ``voxe`` whose value is a real number."""
+    import argparse
+
+    from voxe_core.cli import build_parser
+    from voxe_core.cli.common import finite_float, non_negative_seconds, positive_seconds
+
+    commands = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction))
+    return [(name, action.option_strings[0]) for name, parser in commands.choices.items()
+            for action in parser._actions
+            if action.option_strings and action.type in (finite_float, positive_seconds, non_negative_seconds)]
+
+
+@pytest.mark.parametrize("command, flag", _real_options())
+def test_a_real_valued_option_takes_only_a_decimal_number_in_ascii_digits(command, flag, capsys):
+    """Python's float() had taken ``--lr 1_0`` as 10, ``--poll ' 5'`` as 5 and a full-width ``５`` as 5: each is
+    refused naming the option, as the integer options refuse them; ``.5``, ``+2`` and ``5e-3`` are still read."""
+    assert ("turntable", "--fps") in _real_options() and ("sweep", "--poll") in _real_options()
+    for value in ("1_0", " 5", "5 ", "\uff15"):
+        with pytest.raises(SystemExit) as exc:
+            main([command, f"{flag}={value}"])
+        err = capsys.readouterr().err
+        assert exc.value.code == 2 and f"error: argument {flag}: must be " in err and f"got {value!r}" in err, err
+    for value in (".5", "+2", "5e-3"):
+        with pytest.raises(SystemExit):
+            main([command, f"{flag}={value}", "--no-such-option"])
+        assert f"argument {flag}" not in capsys.readouterr().err
+
+
 def test_an_integer_list_option_takes_digits_with_spaces_around_its_commas():
     import argparse
 
