@@ -1497,6 +1497,28 @@ def test_a_tiny_model_rebuild_failing_part_way_leaves_the_earlier_model_whole(tm
     assert sorted(p.name for p in tmp_path.iterdir()) == ["tiny"]
 
 
+def test_a_tiny_model_build_removes_the_staging_folders_of_builds_killed_mid_way(tmp_path):
+    """A build killed mid-way (SIGKILL) leaves its hidden staging folder beside the model, a model's size each time;
+    the next build removes those no live build holds."""
+    import fcntl
+
+    from voxe_core.tiny_sd import build_tiny_stable_diffusion
+
+    dead, live = tmp_path / ".tiny.0badc0de.partial", tmp_path / ".tiny.1ec0ffee.partial"
+    other = tmp_path / ".other.0badc0de.partial"  # another folder's build
+    for folder in (dead, live, other):
+        (folder / "unet").mkdir(parents=True)
+        (folder / "unet" / "config.json").write_text("{}")
+    held = os.open(live, os.O_RDONLY)
+    try:
+        fcntl.flock(held, fcntl.LOCK_EX)
+        build_tiny_stable_diffusion(tmp_path / "tiny")
+        assert sorted(p.name for p in tmp_path.iterdir()) == [".other.0badc0de.partial", ".tiny.1ec0ffee.partial",
+                                                              "tiny"]
+    finally:
+        os.close(held)
+
+
 def test_build_tiny_model_takes_a_folder_holding_only_a_file_managers_files(tmp_path, capsys):
     """A folder made in Finder (holding only .DS_Store) had been refused as holding another model's files; a folder
     holding another hidden file (a .git) is still refused: building would replace it."""

@@ -30,6 +30,7 @@ Deterministic for a seed; about 3.5 MB on disk.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import re
@@ -40,7 +41,7 @@ from pathlib import Path
 
 import torch
 
-from voxe_core.files import partial_path
+from voxe_core.files import locked, partial_path
 
 # Whole-word tokens of the tiny vocabulary. Anything else still tokenises
 # through the byte-level fallback (several sub-tokens per word).
@@ -190,12 +191,35 @@ def build_tiny_stable_diffusion(path, seed: int = 0) -> Path:
                               "folder")
     staging = partial_path(Path(os.path.abspath(root)), secrets.token_hex(4))
     staging.mkdir()
+    held = os.open(staging, os.O_RDONLY)
     try:
+        if locked(held):  # (held while it builds: a build killed since is told from a live one)
+            _remove_dead_builds(staging)
         _write_tiny_stable_diffusion(staging, seed)
         _put_in_place(staging, root)
     finally:
         shutil.rmtree(staging, ignore_errors=True)
+        os.close(held)
     return root
+
+
+def _remove_dead_builds(staging: Path) -> None:
+    """Remove the staging folders beside ``staging`` that builds of the same folder killed mid-way (SIGKILL, out of
+    memory) left, each a whole model's size: those no process holds locked. Best effort, as
+    :func:`voxe_core.files.remove_dead_partials` for files."""
+    token = staging.name.rsplit(".partial", 1)[0][-8:]
+    head, tail = staging.name.split(f".{token}.partial", 1)
+    pattern = re.compile(re.escape(head) + r"\.[0-9a-f]{8}\.partial" + re.escape(tail))
+    with contextlib.suppress(OSError):
+        for found in staging.parent.iterdir():
+            if found != staging and pattern.fullmatch(found.name) and found.is_dir() and not found.is_symlink():
+                with contextlib.suppress(OSError):
+                    fd = os.open(found, os.O_RDONLY | os.O_DIRECTORY)
+                    try:
+                        if locked(fd):
+                            shutil.rmtree(found)
+                    finally:
+                        os.close(fd)
 
 
 FOLDER_METADATA_FILES = frozenset({".DS_Store", "Thumbs.db", "desktop.ini"})
@@ -215,13 +239,18 @@ def _put_in_place(staging: Path, root: Path) -> None:
         os.replace(staging, root)
         return
     aside = partial_path(Path(os.path.abspath(root)), secrets.token_hex(4))
-    os.rename(root, aside)
+    held = os.open(root, os.O_RDONLY)
     try:
-        os.rename(staging, root)
-    except OSError:
-        os.rename(aside, root)
-        raise
-    shutil.rmtree(aside, ignore_errors=True)
+        locked(held)  # (aside, it is named as a staging folder: held, no other build takes it for a dead one's)
+        os.rename(root, aside)
+        try:
+            os.rename(staging, root)
+        except OSError:
+            os.rename(aside, root)
+            raise
+        shutil.rmtree(aside, ignore_errors=True)
+    finally:
+        os.close(held)
 
 
 def _write_tiny_stable_diffusion(root: Path, seed: int) -> None:
