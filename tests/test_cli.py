@@ -1519,6 +1519,32 @@ def test_a_tiny_model_build_removes_the_staging_folders_of_builds_killed_mid_way
         os.close(held)
 
 
+def test_a_tiny_model_is_built_into_a_mount_point_in_place(tmp_path, monkeypatch):
+    """A mount point (a container's volume at DIR) cannot be renamed over (EBUSY): built beside and renamed into place,
+    its build had failed where writing in place had worked."""
+    import errno
+
+    from voxe_core import tiny_sd
+
+    volume = tmp_path / "volume"
+    volume.mkdir()
+    rename, replace = os.rename, os.replace
+
+    def busy(fn):
+        def renamed(src, dst, *args, **kwargs):
+            if volume in (Path(src), Path(dst)):
+                raise OSError(errno.EBUSY, "Device or resource busy", str(src))
+            return fn(src, dst, *args, **kwargs)
+        return renamed
+
+    monkeypatch.setattr(tiny_sd.os, "rename", busy(rename))
+    monkeypatch.setattr(tiny_sd.os, "replace", busy(replace))
+    monkeypatch.setattr(tiny_sd.os.path, "ismount", lambda path: Path(path) == volume)
+    assert tiny_sd.build_tiny_stable_diffusion(volume) == volume
+    assert (volume / "model_index.json").is_file()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["volume"]
+
+
 def test_build_tiny_model_takes_a_folder_holding_only_a_file_managers_files(tmp_path, capsys):
     """A folder made in Finder (holding only .DS_Store) had been refused as holding another model's files; a folder
     holding another hidden file (a .git) is still refused: building would replace it."""

@@ -180,7 +180,8 @@ def build_tiny_stable_diffusion(path, seed: int = 0) -> Path:
     (a stale sharded index beside the new weights, which loading then read). Refused, not emptied: the folder may be
     the user's real weights. The model is built in a hidden folder beside ``path`` and then takes its place
     (:func:`_put_in_place`): a build killed or failing part way had left a half-rewritten model, earlier weights
-    beside new ones, that loaded as a whole one (or, on a first build, a folder the next build refused).
+    beside new ones, that loaded as a whole one (or, on a first build, a folder the next build refused). A ``path``
+    no rename can replace (a mount point: a container's volume; a folder in one not writable) is written in place.
     """
     root = Path(path)
     root.mkdir(parents=True, exist_ok=True)
@@ -189,6 +190,9 @@ def build_tiny_stable_diffusion(path, seed: int = 0) -> Path:
         raise FileExistsError(f"{root} already holds {', '.join(held[:5])}{', ...' if len(held) > 5 else ''}, not a "
                               "tiny model: the tiny model's files would be mixed with those; give an empty or new "
                               "folder")
+    if os.path.ismount(root) or not os.access(Path(os.path.abspath(root)).parent, os.W_OK):
+        _write_tiny_stable_diffusion(root, seed)  # (a mount point, as a container's volume, is renamed by none, nor a
+        return root  # folder in one this process cannot write: written in place, as before)
     staging = partial_path(Path(os.path.abspath(root)), secrets.token_hex(4))
     staging.mkdir()
     held = os.open(staging, os.O_RDONLY)
