@@ -22,13 +22,13 @@ from pydantic_core import PydanticCustomError
 from sqlalchemy import func, select, true, tuple_
 from sqlalchemy.orm import Session, join
 
+from voxe_core.constants import INTEGER_AS_WRITTEN
 from voxe_service.texts import listed
 
 MAX_OFFSET = 1_000_000_000
 MAX_CURSOR_LENGTH = 200
 ROW_ID = re.compile(r"[0-9a-f]{32}")
 """The form of the rows' ids (voxe_service.models.new_id: uuid4().hex); a cursor's id of any other form is unreadable."""
-_DIGITS = re.compile(r"-?[0-9]+")
 LISTINGS: set[str] = set()
 """The listings :func:`page_query` reads cursors of: a cursor naming one of them may be named in a 422."""
 
@@ -36,7 +36,7 @@ LISTINGS: set[str] = set()
 def _digits_only(value):
     """A query integer as written: digits, an optional minus. Pydantic's lax reading of a string had taken 1_0 as
     10, +5 and " 5" as 5 (a + in a query is a space) and 5.0 as 5: a typo answered as though it were meant."""
-    if isinstance(value, str) and not _DIGITS.fullmatch(value):
+    if isinstance(value, str) and not INTEGER_AS_WRITTEN.fullmatch(value):
         raise PydanticCustomError("int_parsing", "Input should be an integer written in the digits 0-9 (a leading - "
                                                  "allowed), nothing else")
     return value

@@ -8,6 +8,7 @@ imports torch or diffusers to learn a model id or a default; the library's stage
 from __future__ import annotations
 
 import os
+import re
 from pathlib import Path
 
 SDS_MODEL_ID = "stabilityai/stable-diffusion-2-base"
@@ -162,3 +163,8 @@ renders may be ``MAX_RENDER_SIZE`` px at most."""
 TEXTURE_SUFFIXES = (".png", ".jpg", ".jpeg")
 """Texture images the mesh loader reads (``voxe_core.mesh_input``), here so the client (``voxe_client``) checks one
 without torch."""
+
+# ------------------------------------------------------------------ how numbers are written
+INTEGER_AS_WRITTEN = re.compile(r"-?[0-9]+")
+"""An integer as the API's query parameters (``api.paging.DIGITS_ONLY``) and the CLI's options read it: the digits
+0-9, an optional minus; ``int()`` had taken ``1_0`` as 10, ``+5`` and `` 5`` as 5, a full-width ``５`` as 5."""

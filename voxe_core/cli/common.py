@@ -21,6 +21,7 @@ import time
 from pathlib import Path
 from typing import Callable, Iterator
 
+from voxe_core.constants import INTEGER_AS_WRITTEN
 from voxe_core.presets import DOWNSAMPLE, MAX_SEED, RESAMPLE
 
 EXIT_USAGE = 2
@@ -237,14 +238,11 @@ def _at_most_max_count(value: int) -> int:
     return value
 
 
-_DIGITS = re.compile(r"-?[0-9]+")
-
-
 def _integer(text: str) -> int:
-    """An integer option as written: the digits 0-9, an optional minus, as the service reads a query's integers
-    (api.paging's DIGITS_ONLY). ``int`` had taken ``1_0`` as 10, ``+5`` and `` 5`` as 5 and ``５`` (full width) as 5:
-    a typo run as though it were meant."""
-    if not _DIGITS.fullmatch(text):
+    """An integer option as written (``constants.INTEGER_AS_WRITTEN``: the digits 0-9, an optional minus), as the
+    service reads a query's integers. ``int`` had taken ``1_0`` as 10, ``+5`` and `` 5`` as 5 and ``５`` (full width)
+    as 5: a typo run as though it were meant."""
+    if not INTEGER_AS_WRITTEN.fullmatch(text):
         raise argparse.ArgumentTypeError(f"expected a whole number written in the digits 0-9, got {text!r}")
     try:
         return int(text)
@@ -255,7 +253,7 @@ def _integer(text: str) -> int:
 def int_list(text: str) -> list[int]:
     """One integer or a comma-separated list of them (spaces around the commas allowed), each as ``_integer``."""
     items = [v.strip() for v in text.split(",") if v.strip()]
-    if not all(_DIGITS.fullmatch(v) for v in items):
+    if not all(INTEGER_AS_WRITTEN.fullmatch(v) for v in items):
         raise argparse.ArgumentTypeError(f"expected an integer or a comma-separated list of integers written in the "
                                          f"digits 0-9, got {text!r}")
     values = [_integer(v) for v in items]
