@@ -53,9 +53,10 @@ or ready), the scene counting such re-sends, each doubling the wait before the n
 an ingest is claimed first (a conditional update of the row as read), so of several reapers reading it at once one
 sends it.
 
-An upload is orphaned when what is stored under ``scenes/<id>/`` (an unfinished S3 multipart upload included) has no
-scene row and was last written ``VOXE_ORPHANED_UPLOAD_AGE_S`` ago: the API process storing it was killed before it
-recorded the scene (:func:`reap_orphaned_uploads` deletes it).
+Stored objects are orphaned when what lies under ``scenes/<id>/``, ``jobs/<id>/`` or ``reconstructions/<id>/`` (an
+unfinished S3 multipart upload included) has no row and was last written ``VOXE_ORPHANED_UPLOAD_AGE_S`` ago: the API
+process storing an upload was killed before it recorded the scene, or a delete's storage cleanup failed after its rows
+went (:func:`reap_orphaned_uploads` deletes them).
 
 The API runs :func:`reap_orphaned_jobs` at startup and then every ``VOXE_REAPER_INTERVAL_S`` in a
 background thread (:class:`Reaper`). Every update is conditional on the row still being what the
@@ -76,18 +77,19 @@ from voxe_service.broker import waiting_tasks
 from voxe_service.db import session_scope, sync_clock
 from voxe_service.failing import FailingStreak
 from voxe_service.jobs import finish_jobs
-from voxe_service.models import (CANCELED, EVALUATE, FAILED, PROCESSING, QUEUED, RUNNING, Job, JobEvent, Scene,
-                                 WorkerHeartbeat, system_now, utcnow)
+from voxe_service.models import (CANCELED, EVALUATE, FAILED, PROCESSING, QUEUED, RUNNING, Job, JobEvent,
+                                 Reconstruction, Scene, WorkerHeartbeat, system_now, utcnow)
 from voxe_service.queue import (QueueUnavailable, get_queue, is_sql_broker, requeue_interrupted, requeue_limit_error,
                                  send_ingest_again, send_queued_again)
 from voxe_service.scenes import fail_scene
 from voxe_service.settings import Settings
-from voxe_service.storage import SCENES_PREFIX, get_storage, job_key, scene_key
+from voxe_service.storage import (JOBS_PREFIX, RECONSTRUCTIONS_PREFIX, SCENES_PREFIX, get_storage, job_key,
+                                  scene_key)
 
 log = logging.getLogger("voxe.reaper")
 
 UPLOAD_SWEEP_INTERVAL_S = 3600.0
-"""How often a reaper runs :func:`reap_orphaned_uploads`: it lists every scene's objects, too much for each pass."""
+"""How often a reaper runs :func:`reap_orphaned_uploads`: it lists every stored object, too much for each pass."""
 
 LOST_MESSAGE_SETTING = "VOXE_JOB_LOST_MESSAGE_TIMEOUT_S"
 """Named in the reason of each re-send of a job whose message was taken as lost: what counts them."""
@@ -308,26 +310,35 @@ def reap_orphaned_scenes(settings: Settings, now: datetime | None = None) -> lis
     return reaped
 
 
+ORPHANS_SWEPT = ((SCENES_PREFIX, Scene, "scene"), (JOBS_PREFIX, Job, "job"),
+                 (RECONSTRUCTIONS_PREFIX, Reconstruction, "reconstruction"))
+"""The key layout's prefixes :func:`reap_orphaned_uploads` sweeps, each with the model whose row records an id."""
+
+
 def reap_orphaned_uploads(settings: Settings, now: datetime | None = None) -> list[str]:
-    """Delete the stored uploads no scene records, last written ``orphaned_upload_age_s`` ago (their unfinished S3
-    multipart uploads aborted: ``delete_prefix``); returns their scene ids. An API process killed mid-store, or
-    between storing and recording, had left them for good: every other cleanup starts from a row."""
+    """Delete what lies under a ``scenes/<id>/``, ``jobs/<id>/`` or ``reconstructions/<id>/`` prefix no row records,
+    last written ``orphaned_upload_age_s`` ago (their unfinished S3 multipart uploads aborted: ``delete_prefix``);
+    returns those prefixes. An API process killed mid-store, or between storing and recording, or a delete whose
+    storage cleanup failed after its rows went, had left them for good: every other cleanup starts from a row."""
     storage = get_storage(settings)
     cutoff = (now or system_now()) - timedelta(seconds=settings.orphaned_upload_age_s)
-    newest: dict[str, datetime] = {}
-    for key, written in storage.written_at(SCENES_PREFIX).items():
-        scene_id = key.split("/")[1]
-        newest[scene_id] = max(written, newest.get(scene_id, written))
-    old = [scene_id for scene_id, written in newest.items() if written < cutoff]
-    recorded = set()
-    with session_scope() as session:
-        for start in range(0, len(old), 500):
-            recorded |= set(session.scalars(select(Scene.id).where(Scene.id.in_(old[start:start + 500]))))
-    orphans = [scene_id for scene_id in old if scene_id not in recorded]
-    storage.discard_prefixes(*map(scene_key, orphans))
-    for scene_id in orphans:
-        log.warning("reaper: deleted the stored upload %s, which no scene records (its API process stopped while "
-                    "storing it)", scene_key(scene_id))
+    orphans = []
+    for prefix, model, kind in ORPHANS_SWEPT:
+        newest: dict[str, datetime] = {}
+        for key, written in storage.written_at(prefix).items():
+            row_id = key.split("/")[1]
+            newest[row_id] = max(written, newest.get(row_id, written))
+        old = [row_id for row_id, written in newest.items() if written < cutoff]
+        recorded = set()
+        with session_scope() as session:
+            for start in range(0, len(old), 500):
+                recorded |= set(session.scalars(select(model.id).where(model.id.in_(old[start:start + 500]))))
+        unrecorded = [f"{prefix}{row_id}/" for row_id in old if row_id not in recorded]
+        storage.discard_prefixes(*unrecorded)
+        for orphan in unrecorded:
+            log.warning("reaper: deleted the stored objects under %s, which no %s records (a process stopped between "
+                        "storing and recording them, or their cleanup failed after a delete)", orphan, kind)
+        orphans += unrecorded
     return orphans
 
 

@@ -5167,8 +5167,8 @@ def test_the_reaper_deletes_an_upload_no_scene_records_once_old_and_keeps_young_
             os.utime(path, (old, old))
     assert reaper.reap_orphaned_uploads(db, now=system_now() - timedelta(seconds=120)) == []  # none that old yet
     with caplog.at_level(logging.WARNING, logger="voxe.reaper"):
-        assert sorted(reaper.reap_orphaned_uploads(db)) == sorted([orphan, half_written])
-    assert f"deleted the stored upload scenes/{orphan}/, which no scene records" in caplog.text
+        assert sorted(reaper.reap_orphaned_uploads(db)) == sorted(map(scene_key, [orphan, half_written]))
+    assert f"deleted the stored objects under scenes/{orphan}/, which no scene records" in caplog.text
     assert storage.written_at("scenes/").keys() == {scene_key(young, "dataset.zip"), scene_key(recorded, "dataset.zip")}
     assert not (storage.root / "scenes" / half_written).exists()
 
@@ -5221,8 +5221,77 @@ def test_the_reaper_aborts_the_parts_of_an_upload_whose_api_process_was_killed_m
             assert reaper.reap_orphaned_uploads(db) == []  # young: it may still be being stored
             assert uploads() == [f"scenes/{orphan}/dataset.zip"]
         later = system_now() + timedelta(seconds=db.orphaned_upload_age_s + 60)
-        assert reaper.reap_orphaned_uploads(db, now=later) == [orphan]
+        assert reaper.reap_orphaned_uploads(db, now=later) == [f"scenes/{orphan}/"]
         assert uploads() == [] and storage.list() == [f"scenes/{recorded}/dataset.zip"]
+
+
+@pytest.mark.parametrize("prefix", ["jobs", "reconstructions"])
+def test_the_reaper_deletes_a_job_or_reconstructions_objects_no_row_records_once_old_and_keeps_young_and_recorded_ones(
+        db, caplog, prefix):
+    """A delete whose storage cleanup failed after its rows went (or a crash between a write and its row) left
+    ``jobs/<id>/`` or ``reconstructions/<id>/`` with no row, kept for ever as scenes' uploads were: the reaper's sweep
+    takes them too once last written VOXE_ORPHANED_UPLOAD_AGE_S ago (a writer's temporary file included); a younger
+    one and a recorded job's or reconstruction's objects, however old, stay."""
+    from api import reaper
+    from voxe_service.models import system_now
+    from voxe_service.storage import get_storage
+
+    storage = get_storage(db)
+    old = time.time() - db.orphaned_upload_age_s - 60
+    scene = add_scene()
+    recorded_id = add_job(scene, "succeeded", 0) if prefix == "jobs" else add_reconstruction(scene)
+    orphan, half_written, young, recorded = (f"{prefix}/{row_id}/" for row_id in
+                                             (uuid.uuid4().hex, uuid.uuid4().hex, uuid.uuid4().hex, recorded_id))
+    for key in (orphan, young, recorded):
+        storage.put_bytes(key + "grid.safetensors", b"grid")
+    partial = storage.path(half_written + ".grid.safetensors.0123456789abcdef0123456789abcdef.tmp")
+    partial.parent.mkdir(parents=True)
+    partial.write_bytes(b"g")  # a killed writer's temporary file (never listed)
+    for key in (orphan, half_written, recorded):
+        for path in (storage.root / key).iterdir():
+            os.utime(path, (old, old))
+    assert reaper.reap_orphaned_uploads(db, now=system_now() - timedelta(seconds=120)) == []  # none that old yet
+    kind = prefix.removesuffix("s")
+    with caplog.at_level(logging.WARNING, logger="voxe.reaper"):
+        assert sorted(reaper.reap_orphaned_uploads(db)) == sorted([orphan, half_written])
+    assert f"deleted the stored objects under {orphan}, which no {kind} records" in caplog.text
+    assert sorted(storage.list()) == sorted([young + "grid.safetensors", recorded + "grid.safetensors"])
+    assert not (storage.root / half_written).exists()
+
+
+@pytest.mark.parametrize("server", ["moto", "seaweedfs"])
+def test_the_reaper_deletes_s3_objects_and_parts_of_jobs_and_reconstructions_no_row_records(monkeypatch, request,
+                                                                                          server, db):
+    """On S3 the sweep of jobs/ and reconstructions/ deletes the objects and aborts the unfinished multipart uploads
+    no row records, once old; the recorded ones' objects stay, and before the age nothing goes (moto dates its
+    multipart uploads in 2010: the young check is SeaweedFS's)."""
+    from api import reaper
+    from voxe_service.models import system_now
+    from voxe_service.storage import S3Storage
+
+    scene = add_scene()
+    job, rec = add_job(scene, "succeeded", 0), add_reconstruction(scene)
+    orphan_job, orphan_rec = uuid.uuid4().hex, uuid.uuid4().hex
+    with s3_server(request, server) as env:
+        for key in ("AWS_ACCESS_KEY_ID", "AWS_SECRET_ACCESS_KEY", "AWS_DEFAULT_REGION"):
+            monkeypatch.setenv(key, env[key])
+        bucket = f"voxe-faults-{uuid.uuid4().hex[:8]}"
+        storage = S3Storage(bucket, endpoint_url=env["VOXE_S3_ENDPOINT_URL"], region="us-east-1")
+        monkeypatch.setattr(reaper, "get_storage", lambda _settings: storage)
+        kept = [f"jobs/{job}/result.safetensors", f"reconstructions/{rec}/grid.safetensors"]
+        for key in kept + [f"jobs/{orphan_job}/result.safetensors"]:
+            storage.put_bytes(key, b"bytes")
+        storage.client.create_multipart_upload(Bucket=bucket, Key=f"reconstructions/{orphan_rec}/grid.safetensors")
+
+        def uploads() -> list[str]:
+            return sorted(u["Key"] for u in storage.client.list_multipart_uploads(Bucket=bucket).get("Uploads", []))
+
+        if server == "seaweedfs":
+            assert reaper.reap_orphaned_uploads(db) == []  # young: they may still be being written or recorded
+            assert uploads() == [f"reconstructions/{orphan_rec}/grid.safetensors"]
+        later = system_now() + timedelta(seconds=db.orphaned_upload_age_s + 60)
+        assert reaper.reap_orphaned_uploads(db, now=later) == [f"jobs/{orphan_job}/", f"reconstructions/{orphan_rec}/"]
+        assert uploads() == [] and sorted(storage.list()) == sorted(kept)
 
 
 # ---------------------------------------------------------------------------------------------- real processes

@@ -136,8 +136,9 @@ class Settings(BaseSettings):
     storage_outage_max_retries: int = Field(10, ge=0)
     reaper_interval_s: float = Field(60.0, gt=0)
     # What an API process killed while storing an upload (or before recording its scene) left under scenes/<id>/ with
-    # no scene row, an unfinished S3 multipart upload included, is deleted by the reaper once this old: longer than
-    # any upload takes to store, so one still being written (or about to be recorded) is never taken.
+    # no scene row, or a delete whose storage cleanup failed left under jobs/<id>/ or reconstructions/<id>/, an
+    # unfinished S3 multipart upload included, is deleted by the reaper once this old: longer than any upload takes
+    # to store, so one still being written (or about to be recorded) is never taken.
     orphaned_upload_age_s: float = Field(24 * 3600.0, gt=0)
 
     # --- webhooks (voxe_service.webhooks; sent from the API process, api/webhooks.py)

@@ -60,6 +60,10 @@ class StoredObject:
 # one is deleting a prefix. ``name`` "" gives the prefix itself.
 SCENES_PREFIX = "scenes/"
 """What every scene's objects lie under (:func:`scene_key`)."""
+JOBS_PREFIX = "jobs/"
+"""What every job's objects lie under (:func:`job_key`)."""
+RECONSTRUCTIONS_PREFIX = "reconstructions/"
+"""What every reconstruction's objects lie under (:func:`reconstruction_storage_key`)."""
 
 
 def scene_key(scene_id: str, name: str = "") -> str:
@@ -67,11 +71,11 @@ def scene_key(scene_id: str, name: str = "") -> str:
 
 
 def job_key(job_id: str, name: str = "") -> str:
-    return f"jobs/{job_id}/{name}"
+    return f"{JOBS_PREFIX}{job_id}/{name}"
 
 
 def reconstruction_storage_key(reconstruction_id: str, name: str = "") -> str:
-    return f"reconstructions/{reconstruction_id}/{name}"
+    return f"{RECONSTRUCTIONS_PREFIX}{reconstruction_id}/{name}"
 
 
 def check_key(key: str) -> str:
