@@ -112,6 +112,17 @@ def route_path(scope) -> str:
     return path[len(root):] if root and path.startswith(root + "/") else path
 
 
+def root_of(scope) -> str:
+    """The prefix a proxy serves the service under (``uvicorn --root-path /api``: "/api"; "" at the top), which the
+    links the service gives (its page's, an artifact's URL) start with.
+
+    Examples:
+        >>> root_of({"root_path": "/api/"}), root_of({"root_path": "/static", "app_root_path": ""})
+        ('/api', '')
+    """
+    return scope.get("app_root_path", scope.get("root_path", "")).rstrip("/")
+
+
 async def method_not_allowed(request: Request, exc: StarletteHTTPException) -> Response:
     """405 with the path's whole ``Allow``; OPTIONS answered 204 with it."""
     allow = ", ".join(allowed_methods(request.app, route_path(request.scope)))

@@ -12,16 +12,20 @@ needs, Swagger UI's start-up script and model-viewer's stylesheet, are allowed b
 from __future__ import annotations
 
 import base64
+import functools
 import hashlib
+import html
 import re
 from pathlib import Path
 
-from fastapi import APIRouter, FastAPI
+from fastapi import APIRouter, FastAPI, Request
 from fastapi.openapi.docs import get_swagger_ui_html
 from fastapi.responses import FileResponse, HTMLResponse
 from fastapi.staticfiles import StaticFiles
 from starlette.responses import Response
 from starlette.types import Scope
+
+from api.http_semantics import root_of
 
 STATIC_DIR = Path(__file__).resolve().parent / "static"
 SWAGGER_UI = "/static/vendor/swagger-ui-dist-5.17.14"
@@ -49,10 +53,19 @@ UI_POLICY = (f"default-src 'self'; style-src 'self' {inline_sources(MODEL_VIEWER
              "base-uri 'none'; form-action 'none'; frame-ancestors 'none'")
 
 
+PAGE = (STATIC_DIR / "index.html").read_text()
+_PAGE_LINK = re.compile(r'\b(href|src)="/(?!/)')  # the page's links to this service: "/static/app.js", "/docs"
+
+
 @router.api_route("/", methods=["GET", "HEAD"])
-def index() -> FileResponse:
-    return FileResponse(STATIC_DIR / "index.html",
-                        headers={"Cache-Control": REVALIDATE, "Content-Security-Policy": UI_POLICY})
+def index(request: Request) -> Response:
+    """The page; under a proxy's prefix with its links to ``/static`` and ``/docs`` under it too (they had pointed
+    at the proxy's top, another site's pages or none)."""
+    headers, root = {"Cache-Control": REVALIDATE, "Content-Security-Policy": UI_POLICY}, root_of(request.scope)
+    if not root:
+        return FileResponse(STATIC_DIR / "index.html", headers=headers)
+    prefix = html.escape(root)
+    return HTMLResponse(_PAGE_LINK.sub(lambda link: f'{link[1]}="{prefix}/', PAGE), headers=headers)
 
 
 class UiStaticFiles(StaticFiles):
@@ -70,16 +83,23 @@ def mount(app: FastAPI) -> None:
     """Serve the UI, its static files and the vendored Swagger UI on ``app`` (built with ``docs_url=None``)."""
     app.include_router(router)
     app.mount("/static", UiStaticFiles(directory=STATIC_DIR), name="static")
-    docs = get_swagger_ui_html(openapi_url=app.openapi_url, title=f"{app.title} API",
-                               swagger_js_url=f"{SWAGGER_UI}/swagger-ui-bundle.js",
-                               swagger_css_url=f"{SWAGGER_UI}/swagger-ui.css",
-                               swagger_favicon_url=f"{SWAGGER_UI}/favicon-32x32.png",
-                               swagger_ui_parameters={"validatorUrl": None})  # its badge is an image from swagger.io
-    docs_policy = (f"default-src 'self'; script-src 'self' {inline_sources(docs.body.decode(), 'script')}; "
-                   # blob: the images "Try it out" shows (an artifact's PNG); form-action: a form sends to this origin
-                   "img-src 'self' data: blob:; object-src 'none'; base-uri 'none'; form-action 'self'; "
-                   "frame-ancestors 'none'")
+
+    @functools.lru_cache(maxsize=8)
+    def docs_page(root: str) -> tuple[bytes, str]:
+        """/docs under the prefix ``root`` (its /openapi.json and assets under it too), and its policy: the inline
+        start-up script names the document's URL, so its hash differs by prefix."""
+        docs = get_swagger_ui_html(openapi_url=root + app.openapi_url, title=f"{app.title} API",
+                                   swagger_js_url=f"{root}{SWAGGER_UI}/swagger-ui-bundle.js",
+                                   swagger_css_url=f"{root}{SWAGGER_UI}/swagger-ui.css",
+                                   swagger_favicon_url=f"{root}{SWAGGER_UI}/favicon-32x32.png",
+                                   swagger_ui_parameters={"validatorUrl": None})  # its badge: an image from swagger.io
+        policy = (f"default-src 'self'; script-src 'self' {inline_sources(docs.body.decode(), 'script')}; "
+                  # blob: the images "Try it out" shows (an artifact's PNG); form-action: a form sends to this origin
+                  "img-src 'self' data: blob:; object-src 'none'; base-uri 'none'; form-action 'self'; "
+                  "frame-ancestors 'none'")
+        return docs.body, policy
 
     @app.api_route("/docs", methods=["GET", "HEAD"], include_in_schema=False)
-    def swagger_ui() -> HTMLResponse:
-        return HTMLResponse(docs.body, headers={"Content-Security-Policy": docs_policy})
+    def swagger_ui(request: Request) -> HTMLResponse:
+        body, policy = docs_page(root_of(request.scope))
+        return HTMLResponse(body, headers={"Content-Security-Policy": policy})

@@ -4,6 +4,7 @@ that the pages work under that policy."""
 
 from __future__ import annotations
 
+import re
 from html.parser import HTMLParser
 
 import pytest
@@ -163,3 +164,29 @@ def test_the_page_s_limit_on_a_scene_name_is_the_api_s(client):
     script = client.get("/static/app.js").text
     assert re.search(r"^const NAME_MOST = (\d+);", script, re.MULTILINE).group(1) == str(most)
     assert 'id="upload-name"' in client.get("/").text and "maxlength" not in client.get("/").text
+
+
+def test_behind_a_proxy_prefix_the_page_and_docs_link_under_it(client):
+    """``uvicorn --root-path /api`` behind a proxy that serves the service at /api: the page's links to its CSS, its
+    scripts and /docs, and /docs' document and assets, had pointed at the proxy's top (/static/app.js, /openapi.json):
+    the page came up bare, /docs with nothing to show."""
+    from api.ui import inline_sources
+
+    with TestClient(client.app, root_path="/api") as proxied:
+        page = proxied.get("/api/").text
+        links = re.findall(r'(?:href|src)="(/[^"]*)"', page)
+        assert links and all(link.startswith("/api/") for link in links), links
+        assert {"/api/static/app.js", "/api/static/app.css", "/api/docs"} <= set(links)
+        for link in links:
+            assert proxied.get(link).status_code == 200, link
+        docs = proxied.get("/api/docs")
+        assert "url: '/api/openapi.json'" in docs.text
+        assets = re.findall(r'(?:href|src)="(/[^"]*)"', docs.text)
+        assert assets and all(asset.startswith("/api/static/vendor/") for asset in assets), assets
+        for link in assets:
+            assert proxied.get(link).status_code == 200, link
+        assert f"script-src 'self' {inline_sources(docs.text, 'script')};" in docs.headers["content-security-policy"]
+        assert proxied.get("/api/openapi.json").json()["servers"] == [{"url": "/api"}]
+    page, docs = client.get("/"), client.get("/docs")  # at the top, as before
+    assert 'src="/static/app.js"' in page.text and "url: '/openapi.json'" in docs.text
+    assert f"script-src 'self' {inline_sources(docs.text, 'script')};" in docs.headers["content-security-policy"]
