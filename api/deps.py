@@ -12,6 +12,7 @@ from fastapi import Depends, HTTPException, Request, status
 from sqlalchemy.orm import Session
 
 from api.auth import CHALLENGE, idempotency_key, key_of_token, presented_token, refusal
+from api.http_semantics import root_of
 from voxe_service.db import get_session
 from voxe_service.models import LOCAL_KEY_ID, ApiKey
 from voxe_service.queue import TaskQueue, get_queue
@@ -37,6 +38,13 @@ SettingsDep = Annotated[Settings, Depends(settings_dep)]
 StorageDep = Annotated[Storage, Depends(storage_dep)]
 QueueDep = Annotated[TaskQueue, Depends(queue_dep)]
 IdempotencyKey = Annotated[str | None, Depends(idempotency_key)]
+
+
+def root_dep(request: Request) -> str:
+    return root_of(request.scope)
+
+
+RootPath = Annotated[str, Depends(root_dep)]  # the proxy's prefix the links an answer gives start with
 
 
 def current_key(request: Request, session: SessionDep) -> ApiKey:

@@ -83,9 +83,10 @@ class EventHub:
         self._task: asyncio.Task | None = None
         self._ending = False
 
-    async def stream(self, job_id: str, key_id: str, after_id: int = 0) -> AsyncIterator[str]:
+    async def stream(self, job_id: str, key_id: str, after_id: int = 0, root: str = "") -> AsyncIterator[str]:
         """The job's events after ``after_id`` as SSE text, for key ``key_id``, ending after its terminal event (or
-        at :meth:`end_streams`, or once the key is revoked or expires)."""
+        at :meth:`end_streams`, or once the key is revoked or expires); a ``progress`` event's ``preview_url`` under
+        ``root``, the prefix a proxy serves the service under, as the job resource's."""
         watch = _Watch(job_id, after_id, key_id)
         self._watches.append(watch)
         if self._task is None or self._task.done():
@@ -113,7 +114,9 @@ class EventHub:
                     return
                 if watch.job != sent_progress:
                     sent_progress = watch.job
-                    yield sse(watch.job, "progress")
+                    preview = watch.job.get("preview_url")
+                    yield sse({**watch.job, "preview_url": root + preview} if root and preview else watch.job,
+                              "progress")
                 if watch.job["state"] in TERMINAL_STATES:
                     return
         finally:

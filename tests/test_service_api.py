@@ -3618,3 +3618,34 @@ def test_a_webhook_sender_polling_while_the_broker_refuses_a_new_job_delivers_no
         job = client.post("/v1/jobs", json=body)
         assert job.status_code == 201, job.text
         assert sender_claims() == [job.json()["id"]]  # once the broker took it, its warning is the sender's
+
+
+def test_behind_a_proxy_prefix_a_jobs_links_are_under_it(client, dataset, root):
+    """``uvicorn --root-path /api`` behind a proxy serving the service at /api: a job's links (preview, artifacts,
+    events, webhooks), an artifact's URL and a stream's preview_url had been /v1/jobs/... at the proxy's top, none of
+    them this service's."""
+    from sqlalchemy import update
+
+    from voxe_client.client import parse_sse
+    from voxe_service.db import session_scope
+    from voxe_service.models import Job
+
+    job_id, _ = _job_with_artifact(client, dataset, root, b"png bytes")
+    with session_scope() as session:
+        session.execute(update(Job).where(Job.id == job_id).values(preview_artifact="render_000.png"))
+    with TestClient(client.app, root_path="/api") as proxied:
+        job = proxied.post(f"/api/v1/jobs/{job_id}/cancel").json()
+        assert job == proxied.get(f"/api/v1/jobs/{job_id}").json()
+        listed_job = next(j for j in proxied.get("/api/v1/jobs").json()["items"] if j["id"] == job_id)
+        for shown in (job, listed_job):
+            assert [shown[f] for f in ("preview_url", "artifacts_url", "events_url", "webhooks_url")] == [
+                f"/api/v1/jobs/{job_id}/{part}" for part in ("artifacts/render_000.png", "artifacts", "events",
+                                                             "webhooks")]
+        [artifact] = proxied.get(job["artifacts_url"]).json()
+        assert artifact["url"] == job["preview_url"] and proxied.get(artifact["url"]).content == b"png bytes"
+        assert proxied.get(job["events_url"]).json()[-1]["kind"] == "canceled"
+        assert proxied.get(job["webhooks_url"]).json() == []
+        with proxied.stream("GET", job["events_url"], headers={"Accept": "text/event-stream"}) as stream:
+            events = list(parse_sse(stream.iter_lines()))
+        assert [e["data"]["preview_url"] for e in events if e["event"] == "progress"] == [job["preview_url"]]
+    assert client.get(f"/v1/jobs/{job_id}").json()["preview_url"] == f"/v1/jobs/{job_id}/artifacts/render_000.png"

@@ -10,7 +10,7 @@ from fastapi import APIRouter, Header, HTTPException, Request, Response, status
 from fastapi.responses import StreamingResponse
 from sqlalchemy import select
 
-from api.deps import CurrentKey, SessionDep, StorageDep
+from api.deps import CurrentKey, RootPath, SessionDep, StorageDep
 from api.http_semantics import ID_SHOWN, StrictRoute, as_sent, combined, only_line
 from api.schemas import ArtifactOut
 from api.services.jobs import get_job
@@ -54,10 +54,11 @@ class ClosingStreamingResponse(StreamingResponse):
             getattr(self.chunks, "close", lambda: None)()
 
 
-def artifact_out(job_id: str, artifact: Artifact) -> ArtifactOut:
+def artifact_out(job_id: str, artifact: Artifact, root: str) -> ArtifactOut:
     return ArtifactOut(
         name=artifact.name, kind=artifact.kind, size=artifact.size, content_type=artifact.content_type,
-        sha256=artifact.sha256, url=f"/v1/jobs/{job_id}/artifacts/{artifact.name}", created_at=artifact.created_at,
+        sha256=artifact.sha256, url=f"{root}/v1/jobs/{job_id}/artifacts/{artifact.name}",
+        created_at=artifact.created_at,
     )
 
 
@@ -145,10 +146,10 @@ def _unsatisfiable(size: int, detail: str) -> HTTPException:
 
 
 @router.get("", response_model=list[ArtifactOut], responses={404: {"description": "no such job (or another key's)"}})
-def list_artifacts(job_id: str, session: SessionDep, key: CurrentKey) -> list[ArtifactOut]:
+def list_artifacts(job_id: str, session: SessionDep, key: CurrentKey, root: RootPath) -> list[ArtifactOut]:
     get_job(session=session, key=key, job_id=job_id)
     rows = session.scalars(select(Artifact).where(Artifact.job_id == job_id).order_by(Artifact.id))
-    return [artifact_out(job_id, a) for a in rows]
+    return [artifact_out(job_id, a, root) for a in rows]
 
 
 _HEAD = {

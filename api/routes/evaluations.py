@@ -13,7 +13,7 @@ from fastapi import APIRouter, Response, status
 from sqlalchemy.orm import Session
 
 from api.auth import mark_replayed, replayed_answer
-from api.deps import CurrentKey, IdempotencyKey, QueueDep, SessionDep, SettingsDep
+from api.deps import CurrentKey, IdempotencyKey, QueueDep, RootPath, SessionDep, SettingsDep
 from api.http_semantics import StrictRoute
 from api.routes.jobs import job_out
 from api.schemas import EvaluationCreate, JobOut, SweepCreate, SweepEntry, SweepOut
@@ -42,13 +42,13 @@ _QUOTA = {429: {"description": "the key's quota of queued + running jobs is used
              summary="Evaluate finished edit jobs of one scene (CLIP_sim, CLIP_dir, FID, PSNR/SSIM outside the mask; "
                      "optionally with an Idempotency-Key header)")
 def create_evaluation(body: EvaluationCreate, response: Response, session: SessionDep, settings: SettingsDep,
-                      queue: QueueDep, key: CurrentKey, idempotency_key: IdempotencyKey) -> JobOut:
+                      queue: QueueDep, key: CurrentKey, idempotency_key: IdempotencyKey, root: RootPath) -> JobOut:
     """201 with the queued evaluation; 200 with the original one for a retry carrying the same Idempotency-Key."""
     job, replayed = evaluations.create_evaluation(session=session, settings=settings, queue=queue, key=key, body=body,
                                                   idempotency_key=idempotency_key)
     if replayed:
         mark_replayed(response)
-    return job_out(job)
+    return job_out(job, root)
 
 
 @router.post("/v1/sweeps", status_code=status.HTTP_201_CREATED, response_model=SweepOut,

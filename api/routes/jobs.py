@@ -10,7 +10,7 @@ from fastapi.responses import StreamingResponse
 from sqlalchemy import func, select
 
 from api.auth import mark_replayed, replayed_answer
-from api.deps import CurrentKey, IdempotencyKey, QueueDep, SessionDep, SettingsDep
+from api.deps import CurrentKey, IdempotencyKey, QueueDep, RootPath, SessionDep, SettingsDep
 from api.events import SSE_MEDIA_TYPE
 from api.http_semantics import KEYS_OWN, StrictRoute, as_sent, combined, only_line
 from api.paging import PageQuery, page_query
@@ -29,11 +29,12 @@ router = APIRouter(prefix="/v1/jobs", tags=["jobs"], route_class=StrictRoute)
 _ERRORS = {404: {"description": "no such job (or another key's)"}}
 
 
-def job_out(job: Job) -> JobOut:
+def job_out(job: Job, root: str = "") -> JobOut:
+    """The job resource, its links under ``root``: the prefix a proxy serves the service under (api.deps.RootPath)."""
     rec = job.reconstruction
     now = utcnow()
     elapsed = ((job.finished_at or now) - job.started_at).total_seconds() if job.started_at else None
-    base = f"/v1/jobs/{job.id}"
+    base = f"{root}/v1/jobs/{job.id}"
     return JobOut(
         id=job.id, scene_id=job.scene_id, prompt=job.prompt, mode=job.mode, edit_words=job.edit_words,
         params=job.params,
@@ -129,14 +130,14 @@ def _models(job: Job) -> Models:
                                              "resolver (Retry-After)"}},
              summary="Create an edit job (queued at once; optionally with an Idempotency-Key header)")
 def create_job(body: JobCreate, response: Response, session: SessionDep, settings: SettingsDep, queue: QueueDep,
-               key: CurrentKey, idempotency_key: IdempotencyKey) -> JobOut:
+               key: CurrentKey, idempotency_key: IdempotencyKey, root: RootPath) -> JobOut:
     """201 with the queued job (on a scene still processing, it starts once the scene is ready); 200 with the
     original one for a retry carrying the same Idempotency-Key."""
     job, replayed = jobs.create_job(session=session, settings=settings, queue=queue, key=key, body=body,
                                     idempotency_key=idempotency_key)
     if replayed:
         mark_replayed(response)
-    return job_out(job)
+    return job_out(job, root)
 
 
 @router.get("", response_model=Page[JobOut], summary="List jobs, newest first",
@@ -145,19 +146,20 @@ def create_job(body: JobCreate, response: Response, session: SessionDep, setting
 def list_jobs(
     session: SessionDep,
     key: CurrentKey,
+    root: RootPath,
     page: Annotated[PageQuery, Depends(page_query("/v1/jobs"))],
     state: JobState | None = Query(None),
     # (the pattern documents the NUL refusal of http_semantics; an empty one had listed no job: a 422)
     scene_id: str | None = Query(None, min_length=1, pattern=r"^[^\x00]*$"),
 ) -> Page[JobOut]:
     found = jobs.list_jobs(session=session, key=key, state=state, scene_id=scene_id, page=page)
-    return Page[JobOut](items=[job_out(j) for j in found.rows], total=found.total, limit=page.limit,
+    return Page[JobOut](items=[job_out(j, root) for j in found.rows], total=found.total, limit=page.limit,
                         offset=found.offset, next_cursor=found.next_cursor)
 
 
 @router.get("/{job_id}", response_model=JobOut, responses=_ERRORS)
-def get_job(job_id: str, session: SessionDep, key: CurrentKey) -> JobOut:
-    return job_out(jobs.get_job(session=session, key=key, job_id=job_id))
+def get_job(job_id: str, session: SessionDep, key: CurrentKey, root: RootPath) -> JobOut:
+    return job_out(jobs.get_job(session=session, key=key, job_id=job_id), root)
 
 
 @router.get(
@@ -173,7 +175,7 @@ def get_job(job_id: str, session: SessionDep, key: CurrentKey) -> JobOut:
                                     "several lines"}},
     summary="The job's timeline (stages, checkpoints, artifacts, its end), or a live stream of it",
 )
-def list_events(job_id: str, request: Request, response: Response, session: SessionDep, key: CurrentKey,
+def list_events(job_id: str, request: Request, response: Response, session: SessionDep, key: CurrentKey, root: RootPath,
                 # (documents the header; every line of it is read from request.headers)
                 last_event_id: Annotated[str | None, Header(description="stream: resume after this event id")] = None,
                 ) -> list[JobEventOut] | StreamingResponse:
@@ -184,8 +186,8 @@ def list_events(job_id: str, request: Request, response: Response, session: Sess
         after = _event_id(only_line("Last-Event-ID", request.headers.getlist("last-event-id")))
         _check_sent(session, job_id, after)
         session.close()  # the stream reads through the hub's short sessions: hold no connection meanwhile
-        return StreamingResponse(request.app.state.event_hub.stream(job_id, key.id, after), media_type=SSE_MEDIA_TYPE,
-                                 headers={"Cache-Control": KEYS_OWN, "X-Accel-Buffering": "no", **negotiated})
+        return StreamingResponse(request.app.state.event_hub.stream(job_id, key.id, after, root),
+                                 media_type=SSE_MEDIA_TYPE, headers={"Cache-Control": KEYS_OWN, "X-Accel-Buffering": "no", **negotiated})
     response.headers.update(negotiated)
     rows = session.scalars(select(JobEvent).where(JobEvent.job_id == job_id).order_by(JobEvent.id))
     return [JobEventOut.model_validate(e, from_attributes=True) for e in rows]
@@ -271,5 +273,5 @@ def list_webhooks(job_id: str, session: SessionDep, key: CurrentKey) -> list[Web
 @router.post("/{job_id}/cancel", response_model=JobOut,
              responses={**_ERRORS, 409: {"description": "the job already succeeded or failed"}},
              summary="Cancel a job (a queued job at once; a running one stops within a few iterations)")
-def cancel_job(job_id: str, session: SessionDep, key: CurrentKey) -> JobOut:
-    return job_out(jobs.cancel_job(session=session, key=key, job_id=job_id))
+def cancel_job(job_id: str, session: SessionDep, key: CurrentKey, root: RootPath) -> JobOut:
+    return job_out(jobs.cancel_job(session=session, key=key, job_id=job_id), root)
