@@ -6,11 +6,13 @@ only, never edit quality. A screenshot of each page lands in tests/.artifacts/ (
 from __future__ import annotations
 
 import json
+import os
 import re
 import shutil
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 import zipfile
 from pathlib import Path
@@ -1620,3 +1622,57 @@ def test_the_published_text_patterns_read_in_javascript_refuse_nothing_the_serve
             for text, js in zip(texts, read):
                 assert js or not accepted(text, need_words), (pattern, flags, text)
                 assert js == accepted(text, need_words) or need_words and not text.isascii(), (pattern, flags, text)
+
+
+def test_behind_a_proxy_prefix_the_page_calls_the_api_under_it(browser, monkeypatch, tmp_path):
+    """A proxy serving the service at /api (uvicorn --root-path /api behind it): the page's own calls (its job and
+    scene lists, a job's events) had gone to /v1/... at the proxy's top, another site's paths or none. (An API in
+    this process, no worker: the page's calls are what is tested.)"""
+    import uvicorn
+
+    from service_helpers import free_port, reset_service_caches, service_env
+
+    env = service_env(tmp_path, VOXE_AUTH="on")
+    for key, value in env.items():
+        monkeypatch.setenv(key, value)
+    reset_service_caches()
+    from api.main import create_app
+
+    app = create_app()
+
+    async def proxy(scope, receive, send):
+        """What the app gets behind the proxy: paths under /api with root_path /api; nothing else is this service."""
+        if scope["type"] == "lifespan":
+            return await app(scope, receive, send)
+        if scope["path"] == "/api" or scope["path"].startswith("/api/"):
+            return await app({**scope, "root_path": "/api"}, receive, send)
+        await send({"type": "http.response.start", "status": 404, "headers": [(b"content-type", b"text/plain")]})
+        await send({"type": "http.response.body", "body": b"not this service"})
+
+    port = free_port()
+    server = uvicorn.Server(uvicorn.Config(proxy, host="127.0.0.1", port=port, log_level="warning"))
+    thread = threading.Thread(target=server.run, daemon=True)
+    thread.start()
+    driver = browser
+    try:
+        wait_until(lambda: server.started, 60, what="the proxied API to start")
+        token = subprocess.run([sys.executable, "-m", "api.admin", "create-key", "--name", "browser"],
+                               env={**os.environ, **env}, capture_output=True, text=True, check=True,
+                               cwd=Path(__file__).resolve().parents[1]).stdout.strip()
+        driver.get(f"http://127.0.0.1:{port}/api/")
+        use_key(driver, token)
+        wait_until(lambda: "key set" in text(driver, "#key-state"), 10, what="the key to be kept")
+        wait_until(lambda: text(driver, "#jobs-range") != "", 15, what="the job list")
+        go(driver, "#/jobs/not-a-job")
+        wait_until(lambda: text(driver, '[data-error-for="stream"]').startswith("404: "), 15,
+                   what="the job page's answer")
+        assert "not-a-job" in text(driver, '[data-error-for="stream"]')
+        paths = [urlparse(r["url"]).path for r in driver.execute_script("return window.requests")]
+        assert {"/api/v1/jobs", "/api/v1/scenes", "/api/v1/jobs/not-a-job/events"} <= set(paths), paths
+        assert all(path.startswith("/api/") for path in paths), paths
+        assert text(driver, '[data-error-for="list"]') == ""
+        assert driver.execute_script("return window.cspViolations") == []
+    finally:
+        server.should_exit = True
+        thread.join(10)
+        reset_service_caches()

@@ -9,6 +9,9 @@ const KEY_STORE = "voxe.apiKey";
 const TERMINAL = new Set(["succeeded", "failed", "canceled"]);
 const NAME_MOST = 255;  // characters (code points) of a scene's name: POST /v1/scenes' name, maxLength
 const $ = (selector) => document.querySelector(selector);
+// The API's /v1 beside this file's folder, so that a service mounted under a prefix by a proxy (uvicorn
+// --root-path /api: the page at /api/, this file at /api/static/app.js) is called at /api/v1.
+const V1 = new URL("../v1", import.meta.url).pathname;
 
 const apiKey = () => sessionStorage.getItem(KEY_STORE) || "";
 
@@ -173,7 +176,7 @@ function submissionKey() {
   };
 }
 
-const jobPath = (jobId) => `/v1/jobs/${encodeURIComponent(jobId)}`;
+const jobPath = (jobId) => `${V1}/jobs/${encodeURIComponent(jobId)}`;
 
 // ------------------------------------------------------------------ errors next to their fields
 function clearErrors(form) {
@@ -271,7 +274,7 @@ function initUpload() {
     showSceneWarnings([]);
     button.disabled = true;  // until the upload is answered: a second click would upload it twice
     const xhr = new XMLHttpRequest();
-    xhr.open("POST", "/v1/scenes");
+    xhr.open("POST", `${V1}/scenes`);
     const upload = JSON.stringify([archive, ...files].filter(Boolean)
       .map((f) => [f.webkitRelativePath || f.name, f.size, f.lastModified]).concat([name, meshOptions]));
     for (const [name, value] of Object.entries(authHeaders({ "Idempotency-Key": idempotency.for(upload) }))) {
@@ -326,7 +329,7 @@ async function waitForScene(sceneId, status, signal) {
   for (let failures = 0; !signal.aborted;) {
     let failure = null;
     try {
-      const scene = await api(`/v1/scenes/${encodeURIComponent(sceneId)}`, ANSWERS.scene, { signal });
+      const scene = await api(`${V1}/scenes/${encodeURIComponent(sceneId)}`, ANSWERS.scene, { signal });
       showError("upload", "");
       failures = 0;
       if (scene.state !== "processing") {
@@ -397,7 +400,7 @@ async function allScenes(signal) {
   let cursor = null;
   do {
     const query = new URLSearchParams({ ...(cursor && { cursor }), limit: String(SCENES_PER_REQUEST) });
-    const answer = await api(`/v1/scenes?${query}`, ANSWERS.scenes, { signal });
+    const answer = await api(`${V1}/scenes?${query}`, ANSWERS.scenes, { signal });
     scenes.push(...answer.items);
     cursor = answer.next_cursor;
   } while (cursor);
@@ -433,7 +436,7 @@ function initJobForm() {
     button.disabled = true;  // until answered: a double click would create the job twice
     try {
       const headers = { "Idempotency-Key": idempotency.for(JSON.stringify(body)) };
-      const job = await api("/v1/jobs", ANSWERS.job, { method: "POST", body, headers });
+      const job = await api(`${V1}/jobs`, ANSWERS.job, { method: "POST", body, headers });
       idempotency.succeeded();
       location.hash = `#/jobs/${encodeURIComponent(job.id)}`;
     } catch (error) {
@@ -509,7 +512,7 @@ async function loadJobs(signal) {
   if ($("#filter-scene").value) query.set("scene_id", $("#filter-scene").value);
   if ($("#filter-state").value) query.set("state", $("#filter-state").value);
   try {
-    const jobs = await api(`/v1/jobs?${query}`, ANSWERS.jobs, { signal });
+    const jobs = await api(`${V1}/jobs?${query}`, ANSWERS.jobs, { signal });
     if (request !== jobListRequest) return null;
     if (!jobs.items.length && cursor) {  // every job past the cursor deleted meanwhile: show the page before
       jobsCursor = newerJobsCursors.pop() ?? null;
