@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import errno
 import json
 import os
 import re
@@ -194,6 +195,20 @@ def test_a_symbol_the_model_reads_is_an_edit_word(prompt, edit_word, tmp_path, c
     monkeypatch.chdir(tmp_path)
     assert main([*REFINE_MISSING, "--prompt", prompt, "--edit-words", edit_word, "--device", "cpu"]) == 2
     assert "no_such_grid.safetensors: no such file" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("code", [errno.ENOSPC, errno.EDQUOT, errno.EIO])
+def test_a_machine_side_os_error_exits_1_not_as_bad_input(tmp_path, monkeypatch, capsys, code):
+    """A full disk (or quota) or an I/O error at a stage's end had exited 2, "bad input", as a missing file does:
+    a script told to fix its arguments. It is the machine's failure: 1, as README's exit statuses say."""
+    import voxe_core.cli.grids
+
+    def failing(args):
+        raise OSError(code, os.strerror(code), str(tmp_path / "g.safetensors"))
+
+    monkeypatch.setattr(voxe_core.cli.grids, "cmd_convert_grid", failing)
+    assert main(["convert-grid", str(tmp_path / "in.safetensors"), "--out", str(tmp_path / "g2.safetensors")]) == 1
+    assert f"voxe convert-grid: error: [Errno {code}] {os.strerror(code)}" in capsys.readouterr().err
 
 
 def test_bad_data_dir_exits_2_with_a_message(tmp_path, capsys):
@@ -1522,7 +1537,6 @@ def test_a_tiny_model_build_removes_the_staging_folders_of_builds_killed_mid_way
 def test_a_tiny_model_is_built_into_a_mount_point_in_place(tmp_path, monkeypatch):
     """A mount point (a container's volume at DIR) cannot be renamed over (EBUSY): built beside and renamed into place,
     its build had failed where writing in place had worked."""
-    import errno
 
     from voxe_core import tiny_sd
 
@@ -1845,7 +1859,6 @@ def test_a_render_failing_part_way_leaves_the_earlier_runs_views_as_they_were(sp
     """Saving each view as it is rendered, a run that fails or is cancelled at its third view must not leave a mix
     of its own views and the earlier run's: they are staged beside --out and moved in once all are written. A killed
     run's staging folder goes at the next run; one a running run holds is not emptied, the second run refused."""
-    import errno
     import fcntl
 
     import voxe_core.export
@@ -1875,7 +1888,9 @@ def test_a_render_failing_part_way_leaves_the_earlier_runs_views_as_they_were(sp
 
     monkeypatch.setattr(voxe_core.export, "save_png", failing_at_the_third)
     assert main(["render", str(sphere_file), "--ring", "4", "--size", "20", "--out", str(out), "--quiet"]) == (
-        2 if failure == "disk full" else 130)
+        1 if failure == "disk full" else 130)  # a full disk is the machine's failure, not bad input (2)
+    if failure == "disk full":
+        assert "voxe render: error: [Errno 28] No space left on device" in capsys.readouterr().err
     assert len(saved) == 2 and {path.name: path.read_bytes() for path in out.iterdir()} == earlier
 
 
@@ -1915,7 +1930,6 @@ def test_an_output_path_in_the_way_fails_the_run_before_it_renders(sphere_file, 
 def test_an_evaluation_whose_move_fails_part_way_leaves_no_summary(sphere_file, tmp_path, monkeypatch):
     """The earlier evaluation.json had stayed beside this run's ring renders moved in before the failure: it goes
     before the first move, so evaluation.json in --out means the set is whole."""
-    import errno
 
     from voxe_core.tiny_eval import build_tiny_clip
 
@@ -1933,7 +1947,7 @@ def test_an_evaluation_whose_move_fails_part_way_leaves_no_summary(sphere_file, 
         real_replace(source, target)
 
     monkeypatch.setattr(os, "replace", failing_at_the_second_frame)
-    assert main(command + ["--views", "3"]) == 2
+    assert main(command + ["--views", "3"]) == 1  # an I/O error: the machine's failure
     assert len(moved) == 1 and not (out / "evaluation.json").exists() and not (out / "evaluation.md").exists()
 
 

@@ -29,17 +29,22 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import errno
 import os
 import sys
 from typing import Iterator, Sequence
 
 from voxe_core.cli import edit, evaluate, grids, mesh, reconstruct, refine, render, service
 from voxe_core.cli.common import (
-    EXIT_INTERRUPTED, EXIT_OUTPUT_CLOSED, EXIT_USAGE, interrupted_status, library_progress_bars_off,
+    EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OUTPUT_CLOSED, EXIT_USAGE, interrupted_status, library_progress_bars_off,
     removing_made_folders_unless, sigterm_as_ctrl_c,
 )
 
 COMMAND_GROUPS = (reconstruct, render, mesh, grids, edit, refine, evaluate, service)
+MACHINE_FAILURES = (errno.ENOSPC, errno.EDQUOT, errno.EIO)
+"""The errnos of an OSError that is the machine's failure (a full disk or quota, a failing disk), not the input's:
+such a run exits ``EXIT_FAILED``, not 2 ("bad input"), which had told a script to fix what it passed after a long
+stage ended on a full disk."""
 OUT_OF_MEMORY_SAYINGS = ("can't allocate memory", "Tried to allocate", "out of memory",
                          "Storage size calculation overflowed")
 """How torch's RuntimeErrors say a tensor asked for is past the machine's memory; the last, past what a byte count
@@ -58,7 +63,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Entry point of ``voxe``; returns the exit status (0 ok, 2 bad input, 3 the job service failed or was
+    """Entry point of ``voxe``; returns the exit status (0 ok, 1 the work did not succeed: the job waited for, or
+    the machine's disk full or failing, 2 bad input, 3 the job service failed or was
     not reached, 130 interrupted, 143 stopped by SIGTERM, 141 its output's reader gone). A command that does not
     succeed leaves no folder it made and wrote nothing into."""
     status = None
@@ -100,7 +106,7 @@ def _run(args: argparse.Namespace) -> int:
     except (ValueError, ArithmeticError, OSError) as exc:
         kind = "dataset error" if _is_dataset_error(exc) else "error"
         print(f"voxe {args.command}: {kind}: {exc}", file=sys.stderr)
-        return EXIT_USAGE
+        return EXIT_FAILED if isinstance(exc, OSError) and exc.errno in MACHINE_FAILURES else EXIT_USAGE
     except (MemoryError, RuntimeError) as exc:  # torch's allocators raise RuntimeErrors ("can't allocate memory")
         if not isinstance(exc, MemoryError) and not any(words in str(exc) for words in OUT_OF_MEMORY_SAYINGS):
             raise  # any other RuntimeError is a bug to see whole

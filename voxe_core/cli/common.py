@@ -24,6 +24,8 @@ from typing import Callable, Iterator
 from voxe_core.constants import INTEGER_AS_WRITTEN
 from voxe_core.presets import DOWNSAMPLE, MAX_SEED, RESAMPLE
 
+EXIT_FAILED = 1
+"""The work did not succeed: the job (or sweep) waited for ended otherwise, or the machine failed it (a full disk)."""
 EXIT_USAGE = 2
 EXIT_SERVICE_FAILED = 3
 """The job service failed (an error status of 500 or more) or was not reached, where ``EXIT_USAGE`` says it refused

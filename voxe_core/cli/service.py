@@ -18,8 +18,8 @@ import warnings
 from pathlib import Path
 
 from voxe_core.cli.common import (
-    EXIT_INTERRUPTED, EXIT_SERVICE_FAILED, EXIT_USAGE, LOG_PROGRESS_INTERVAL_S, Interrupt, non_negative_seconds,
-    positive_seconds, writable_file, writable_folder,
+    EXIT_FAILED, EXIT_INTERRUPTED, EXIT_SERVICE_FAILED, EXIT_USAGE, LOG_PROGRESS_INTERVAL_S, Interrupt,
+    non_negative_seconds, positive_seconds, writable_file, writable_folder,
 )
 from voxe_core.presets import EDIT_MODE, EDIT_MODES
 
@@ -250,7 +250,7 @@ def _follow(client, job_id: str, args) -> int:
     if over_the_bar:  # ends the bar redrawn in place; a log's lines end themselves
         print(file=sys.stderr)
     print_json(job)
-    return 0 if job["state"] == "succeeded" else 1
+    return 0 if job["state"] == "succeeded" else EXIT_FAILED
 
 
 def cmd_submit(args) -> int:
@@ -473,5 +473,5 @@ def cmd_sweep(args) -> int:
         return EXIT_INTERRUPTED
     if sweep["state"] != "succeeded":  # as voxe wait: a script must see what did not succeed
         print(f"voxe sweep: the sweep {sweep['id']} ended {sweep['state']}: jobs {sweep['counts']}", file=sys.stderr)
-        return 1
+        return EXIT_FAILED
     return 0
