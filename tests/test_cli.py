@@ -1205,6 +1205,20 @@ def test_an_output_suffix_no_mesh_or_video_takes_is_refused_naming_the_option(tm
         assert not out.exists()
 
 
+def test_an_output_suffix_no_mesh_or_video_takes_is_refused_before_torch_is_loaded(tmp_path):
+    """The --out suffix of export-mesh and turntable was checked after their torch imports: seconds to be told a
+    typo. The suffix lists are torch-free (voxe_core.constants); the refusal comes without torch loaded."""
+    for command in ("export-mesh", "turntable"):
+        result = subprocess.run([sys.executable, "-X", "importtime", "-m", "voxe_core.cli", command,
+                                 str(tmp_path / "missing.safetensors"), "--out", str(tmp_path / "out.xyz")],
+                                capture_output=True, text=True, timeout=120, cwd=REPO)
+        lines = result.stderr.splitlines()
+        imported = {line.rsplit("|", 1)[1].strip() for line in lines if line.startswith("import time:")}
+        said = [line for line in lines if not line.startswith("import time:")]
+        assert result.returncode == 2 and "--out: unsupported" in said[0], result.stderr
+        assert "torch" not in imported and "voxe_core.export" not in imported
+
+
 @pytest.mark.parametrize("text, message", [
     ('{"a": ' * 5000 + "1" + "}" * 5000, "its arrays or objects nest too deeply"),  # had been a RecursionError
     # had been argparse's "invalid _json_object value: '{...}'", quoting the whole text

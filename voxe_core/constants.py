@@ -164,6 +164,13 @@ TEXTURE_SUFFIXES = (".png", ".jpg", ".jpeg")
 """Texture images the mesh loader reads (``voxe_core.mesh_input``), here so the client (``voxe_client``) checks one
 without torch."""
 
+# ------------------------------------------------------------------ outputs
+VIDEO_SUFFIXES = (".mp4", ".gif")
+"""The videos ``voxe_core.export.write_video`` writes, here so ``voxe turntable`` checks its --out before torch."""
+
+MESH_SUFFIXES = (".ply", ".glb", ".obj")
+"""The meshes ``voxe_core.export.save_mesh`` writes, here so ``voxe export-mesh`` checks its --out before torch."""
+
 # ------------------------------------------------------------------ how numbers are written
 INTEGER_AS_WRITTEN = re.compile(r"-?[0-9]+")
 """An integer as the API's query parameters (``api.paging.DIGITS_ONLY``) and the CLI's options read it: the digits

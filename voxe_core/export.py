@@ -27,7 +27,7 @@ import numpy as np
 import torch
 
 from voxe_core.cameras import Cameras, ring_poses
-from voxe_core.constants import NERF_SYNTHETIC_FOV_X, NERF_SYNTHETIC_RADIUS
+from voxe_core.constants import MESH_SUFFIXES, NERF_SYNTHETIC_FOV_X, NERF_SYNTHETIC_RADIUS, VIDEO_SUFFIXES
 from voxe_core.devices import PeakMemory, full_precision, resolve_device
 from voxe_core.files import replacing
 from voxe_core.grid import VoxelGrid
@@ -36,8 +36,6 @@ from voxe_core.progress import Callbacks, Progress
 from voxe_core.render import RenderConfig, composite, render_image
 from voxe_core.volrend import RaySamples
 
-VIDEO_SUFFIXES = (".mp4", ".gif")
-MESH_SUFFIXES = (".ply", ".glb", ".obj")
 _QUERY_CHUNK = 1 << 18  # points per grid query when sampling a mesh or a resampled lattice
 
 

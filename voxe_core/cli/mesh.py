@@ -11,6 +11,7 @@ from voxe_core.cli.common import (
     run_stage, seed, tensor_file, writable_file,
 )
 from voxe_core.cli.reconstruct import recipe_params
+from voxe_core.constants import MESH_SUFFIXES
 from voxe_core.presets import (
     DOWNSAMPLE, MESH_VIEW_SIZE, MESH_VIEWS, RECONSTRUCTION_PRESET, RECONSTRUCTION_PRESETS, SEED, ExportConfig,
     reconstruct_config,
@@ -59,12 +60,12 @@ def add_parsers(commands, common) -> None:
 
 
 def cmd_export_mesh(args) -> int:
-    from voxe_core.backbones import load_grid
-    from voxe_core.export import MESH_SUFFIXES, extract_mesh, save_mesh
-
-    if args.out.suffix.lower() not in MESH_SUFFIXES:
+    if args.out.suffix.lower() not in MESH_SUFFIXES:  # before torch: seconds to be told
         raise ValueError(f"--out: unsupported mesh suffix {args.out.suffix!r} for {args.out}; use one of "
                          f"{', '.join(MESH_SUFFIXES)}")
+    from voxe_core.backbones import load_grid
+    from voxe_core.export import extract_mesh, save_mesh
+
     device = check_device(args)
     writable_file(args.out)
     if args.out.suffix.lower() == ".obj":  # and the material library beside it, before the mesh is made

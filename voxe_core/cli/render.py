@@ -16,6 +16,7 @@ from voxe_core.cli.common import (
     EXIT_INTERRUPTED, add_device_argument, add_view_arguments, check_device, finite_float, load_views, positive_int,
     run_stage, staging_folder, view_options_given, writable_file, writable_folder,
 )
+from voxe_core.constants import VIDEO_SUFFIXES
 from voxe_core.files import head_that_fits, replacing
 from voxe_core.presets import ExportConfig
 
@@ -182,15 +183,15 @@ def _report_metrics(psnr_values, ssim_values, scene, names, out_dir: Path) -> No
 
 
 def cmd_turntable(args) -> int:
+    if args.out.suffix.lower() not in VIDEO_SUFFIXES:  # (check_video_output's rule, said naming the option, before
+        raise ValueError(f"--out: unsupported video suffix {args.out.suffix!r} for {args.out}; use one of "  # torch)
+                         f"{', '.join(VIDEO_SUFFIXES)}")
     from voxe_core.backbones import load_grid
     from voxe_core.export import (
-        GIF_MIN_DELAY_CS, VIDEO_SUFFIXES, check_video_output, check_video_size, gif_timeline, iter_views,
-        turntable_cameras, write_video,
+        GIF_MIN_DELAY_CS, check_video_output, check_video_size, gif_timeline, iter_views, turntable_cameras,
+        write_video,
     )
 
-    if args.out.suffix.lower() not in VIDEO_SUFFIXES:  # (check_video_output's rule, said naming the option)
-        raise ValueError(f"--out: unsupported video suffix {args.out.suffix!r} for {args.out}; use one of "
-                         f"{', '.join(VIDEO_SUFFIXES)}")
     check_video_output(args.out, args.fps)  # fail before rendering, not after
     check_video_size(args.out, args.size, args.size)
     check_elevation(args.elevation)
