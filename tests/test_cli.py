@@ -295,6 +295,21 @@ def test_a_waited_sweep_exits_1_unless_it_succeeded(monkeypatch, capsys, tmp_pat
     assert (f"ended {end}: jobs {{'{end}': 6, 'succeeded': 6}}" in err) == (code == 1)
 
 
+def test_a_sweeps_out_file_keeps_its_text_as_written(monkeypatch, tmp_path):
+    """``voxe sweep --out`` wrote "a caf\\u00e9" where ``voxe status`` prints "a café": the CLI's JSON files are
+    UTF-8, their text as written, whatever the locale's encoding."""
+    import voxe_core.cli.service as service
+
+    sweeps = FakeSweeps(["succeeded"], {"succeeded": 12})
+    real_get = sweeps.get_sweep
+    monkeypatch.setattr(sweeps, "get_sweep", lambda sweep_id: {**real_get(sweep_id), "table": "a café ☕\n"})
+    monkeypatch.setattr(service, "_client", lambda args: sweeps)
+    out = tmp_path / "s.json"
+    assert main(["sweep", "--scene", "s1=mic", "--wait", "--poll", "0.01", "--out", str(out)]) == 0
+    assert '"table": "a café ☕\\n"' in out.read_bytes().decode("utf-8")
+    assert json.loads(out.read_bytes())["table"] == "a café ☕\n"
+
+
 @pytest.fixture
 def sigterm_fails_the_test():
     """A SIGTERM that the command under test leaves unhandled fails the test, rather than killing pytest."""

@@ -10,6 +10,7 @@ import contextlib
 import contextvars
 import fcntl
 import importlib
+import json
 import math
 import os
 import re
@@ -37,6 +38,12 @@ status a shell gives 128 + the signal's number (143), where Ctrl-C's is 130."""
 EXIT_OUTPUT_CLOSED = 141
 """The output's reader stopped reading (``voxe status J | head -c 10``): the status a shell reports for ``cat`` or
 ``seq`` ended there by SIGPIPE (128 + 13), said nothing about."""
+
+
+def write_json(path: Path, record: dict) -> None:
+    """``record`` as indented JSON in UTF-8, its text as written ("a café"), as ``voxe status`` prints it: the
+    files had escaped it ("a caf\\u00e9", ``json.dumps``' default) where stdout did not."""
+    path.write_text(json.dumps(record, indent=2, ensure_ascii=False), encoding="utf-8")
 
 
 INTERRUPT_CHECK_S = 0.1

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 import re
 import sys
 from pathlib import Path
@@ -10,7 +9,7 @@ from pathlib import Path
 from voxe_core.cli.common import (
     EXIT_INTERRUPTED, EXIT_USAGE, add_model_arguments, add_view_arguments, check_device, finite_float, load_views,
     move_staged, remove_earlier_outputs, run_stage, said_by_option, staging_folder, view_options_given, whole_number,
-    writable_file, writable_folder,
+    writable_file, writable_folder, write_json,
 )
 from voxe_core.constants import (
     CLIP_MODEL_ID, EVALUATION_RING_ELEVATION, EVALUATION_RING_SIZE, EVALUATION_RING_VIEWS, INCEPTION_FILE,
@@ -114,7 +113,7 @@ def cmd_evaluate(args) -> int:
         table = format_table(result.rows, extra_columns=("name",))
         # Written whole into the staging first: a full disk there leaves --out as it was (it had left the
         # earlier run's summaries torn, then none beside this run's ring renders)
-        (staging / "evaluation.json").write_text(json.dumps(summary, indent=2))
+        write_json(staging / "evaluation.json", summary)
         (staging / "evaluation.md").write_text(table)
         move_staged(staging, out, ("evaluation.md", "evaluation.json"), lambda: clear_ring_renders(out / "ring"))
     print(table, end="")

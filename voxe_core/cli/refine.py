@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 import re
 import sys
 import warnings
@@ -17,7 +16,7 @@ from voxe_core import constants as paper
 from voxe_core.cli.common import (
     EXIT_INTERRUPTED, EXIT_USAGE, add_grid_output_arguments, add_model_arguments, check_device, finite_float,
     load_guidance, move_staged, non_negative_int, positive_int, positive_int_at_most, remove_earlier_outputs, run_stage, said_by_option, seed, staging_folder,
-    writable_file, writable_folder,
+    writable_file, writable_folder, write_json,
 )
 from voxe_core.guidance.prompts import (check_edit_words_name_an_edit, check_edit_words_read,
                                         check_no_special_tokens, check_prompt_length, prompt_text)
@@ -184,7 +183,7 @@ def _write_outputs(folder: Path, result, words: list[str], model: str, config, s
     summary = {"prompt": result.info["prompt"], "edit_words": words, "model": model,
                "settings": config_recipe(config, ()),  # every one the run used (--sigma, --lift-start, ... had gone unsaid)
                "graph_cut": stats, "masked_voxels": int(result.mask.sum())}
-    (folder / "refine.json").write_text(json.dumps(summary, indent=2))
+    write_json(folder / "refine.json", summary)
 
 
 def _frame_name(preview: str, view: int) -> str:

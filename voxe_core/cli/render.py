@@ -14,7 +14,7 @@ from pathlib import Path
 
 from voxe_core.cli.common import (
     EXIT_INTERRUPTED, add_device_argument, add_view_arguments, check_device, finite_float, load_views, positive_int,
-    run_stage, staging_folder, view_options_given, writable_file, writable_folder,
+    run_stage, staging_folder, view_options_given, writable_file, writable_folder, write_json,
 )
 from voxe_core.constants import VIDEO_SUFFIXES
 from voxe_core.files import head_that_fits, replacing
@@ -157,7 +157,7 @@ def _replace_manifest(out_dir: Path, files: list[str]) -> None:
         if isinstance(name, str) and Path(name).name == name and (out_dir / name).is_file():  # (only its own names)
             (out_dir / name).unlink()
     with replacing(manifest) as partial:
-        partial.write_text(json.dumps({"written_by": "voxe render", "files": files}, indent=2))
+        write_json(partial, {"written_by": "voxe render", "files": files})
 
 
 def _report_metrics(psnr_values, ssim_values, scene, names, out_dir: Path) -> None:
@@ -179,7 +179,7 @@ def _report_metrics(psnr_values, ssim_values, scene, names, out_dir: Path) -> No
         line += f" (SSIM needs views of at least {SSIM_WINDOW} px)"
     print(f"{line} over {len(names)} views")
     with replacing(out_dir / METRICS_FILE) as partial:  # whole or not at all: a full disk had left it torn
-        partial.write_text(json.dumps(summary, indent=2))
+        write_json(partial, summary)
 
 
 def cmd_turntable(args) -> int:

@@ -19,7 +19,7 @@ from pathlib import Path
 
 from voxe_core.cli.common import (
     EXIT_FAILED, EXIT_INTERRUPTED, EXIT_SERVICE_FAILED, EXIT_USAGE, LOG_PROGRESS_INTERVAL_S, Interrupt,
-    non_negative_seconds, positive_seconds, writable_file, writable_folder,
+    non_negative_seconds, positive_seconds, writable_file, writable_folder, write_json,
 )
 from voxe_core.presets import EDIT_MODE, EDIT_MODES
 
@@ -457,7 +457,7 @@ def cmd_sweep(args) -> int:
     unfinished = interrupt.requested and sweep["state"] in ("queued", "running")
     if args.out is not None and not unfinished:
         with replacing(args.out) as partial:  # whole or not at all: a full disk had left it torn
-            partial.write_text(json.dumps(sweep, indent=2))
+            write_json(partial, sweep)
     if not args.wait:  # just queued: its table had been printed with no row, the sweep's id nowhere on stdout
         print(f"voxe sweep: not waited for (--wait polls until it ends): GET /v1/sweeps/{sweep['id']} shows its "
               "summary table as its evaluations finish", file=sys.stderr)
