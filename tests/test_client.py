@@ -123,7 +123,7 @@ def test_a_url_without_http_or_a_host_is_bad_input_not_a_service_not_reached(cap
                                              "https:// and a host, as http://127.0.0.1:8000$"):
             Client(url)
         assert main(["status", "j1", "--api", url]) == 2
-        assert capsys.readouterr().err == (f"voxe status: error: {url!r} is not a service URL: it takes http:// or "
+        assert capsys.readouterr().err == (f"voxe status: error: --api: {url!r} is not a service URL: it takes http:// or "
                                            "https:// and a host, as http://127.0.0.1:8000\n")
     Client("https://svc.test:8443/voxe/").close()
 
@@ -142,7 +142,7 @@ def test_a_service_url_with_a_query_or_fragment_is_refused_naming_it_not_sent_ca
         with pytest.raises(ValueError, match=f"^{re.escape(message)}$"):
             Client(url, transport=httpx.MockTransport(lambda request: asked.append(request.url)))
         assert main(["status", "j1", "--api", url]) == 2
-        assert capsys.readouterr().err == f"voxe status: error: {message}\n"
+        assert capsys.readouterr().err == f"voxe status: error: --api: {message}\n"
     assert asked == []
     Client("https://svc.test:8443/voxe/").close()
 
@@ -162,7 +162,7 @@ def test_a_service_url_with_a_user_or_password_is_refused_without_saying_the_pas
         with pytest.raises(ValueError, match=f"^{re.escape(message)}$"):
             Client(url, api_key="k", transport=httpx.MockTransport(lambda request: asked.append(request.headers)))
         assert main(["status", "j1", "--api", url]) == 2
-        assert capsys.readouterr().err == f"voxe status: error: {message}\n"
+        assert capsys.readouterr().err == f"voxe status: error: --api: {message}\n"
     assert asked == []
 
 
@@ -185,6 +185,24 @@ def test_a_redirect_answered_says_where_it_points_not_that_it_may_not_be_the_ser
                 "which this client does not follow: give it the URL the service answers at (voxe: --api)")
 
 
+def test_an_ipv6_service_url_written_wrong_is_refused_naming_the_option_and_the_fault(capsys):
+    """``--api 'http://[::1'`` (the bracket unclosed) and ``http://::1`` (no brackets) had been refused as httpx's
+    "Invalid port: ':1'", naming neither the option nor the fault; a password in such a URL is not quoted."""
+    from voxe_core.cli import main
+
+    for url, shown, fault in (
+            ("http://[::1", "http://[::1", "its IPv6 address's '[' has no closing ']'"),
+            ("http://[::1/v1x", "http://[::1/v1x", "its IPv6 address's '[' has no closing ']'"),
+            ("http://user:secret@[::1", "http://***@[::1", "its IPv6 address's '[' has no closing ']'"),
+            ("http://::1:8000", "http://::1:8000", "an IPv6 address is written in [ ]")):
+        message = f"{shown!r} is not a service URL: {fault}, as http://[::1]:8000"
+        with pytest.raises(ValueError, match=f"^{re.escape(message)}$"):
+            Client(url)
+        assert main(["status", "j1", "--api", url]) == 2
+        assert capsys.readouterr().err == f"voxe status: error: --api: {message}\n"
+    Client("http://[::1]:8000/voxe/").close()
+
+
 def test_a_service_url_whose_port_is_past_65535_or_0_is_refused_not_another_ports_service_asked(capsys):
     """httpx takes any port number and the socket connects to it modulo 65536: ``--api http://127.0.0.1:99999`` had
     asked (with the API key) whatever listens on port 34463, and port 0 failed as a service not reached (exit 3, try
@@ -197,7 +215,7 @@ def test_a_service_url_whose_port_is_past_65535_or_0_is_refused_not_another_port
         with pytest.raises(ValueError, match=f"^{re.escape(message)}$"):
             Client(url, api_key="k")
         assert main(["status", "j1", "--api", url]) == 2
-        assert capsys.readouterr().err == f"voxe status: error: {message}\n"
+        assert capsys.readouterr().err == f"voxe status: error: --api: {message}\n"
     for url in ("http://127.0.0.1:1", "https://svc.test:65535/voxe/"):
         Client(url).close()
 

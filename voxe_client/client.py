@@ -108,6 +108,11 @@ class ServiceError(Exception):
         return isinstance(self, ServiceUnreachable) or (self.status or 0) >= 500
 
 
+class NotAServiceURL(ValueError):
+    """A base URL the client refuses (no http(s) scheme or host, a password, a query, a bad port): ``voxe`` names its
+    --api option with it."""
+
+
 class ServiceUnreachable(ServiceError):
     """The service could not be reached, or stopped answering: no answer to go by."""
 
@@ -208,26 +213,33 @@ class Client:
                 raise ValueError("the API key cannot be sent: it holds a line break, NUL or other whitespace than "
                                  "spaces and tabs (the end of a line of the file it was read from?)")
             headers["authorization"] = f"Bearer {api_key}".encode()  # UTF-8, as _header_bytes (not ASCII only)
+        shown = re.sub(r"//[^/?#]*@", "//***@", base_url, count=1)  # its password never quoted
+        host = re.sub(r"^[^:/?#]*://|[/?#].*$", "", self.base_url, flags=re.S).rpartition("@")[2]
+        if host.startswith("[") and "]" not in host:  # httpx had said "Invalid port: ':1'" of http://[::1
+            raise NotAServiceURL(f"{shown!r} is not a service URL: its IPv6 address's '[' has no closing ']', as "
+                                 "http://[::1]:8000")
+        if host.count(":") > 1 and not host.startswith("["):  # (http://::1: "Invalid port: ':1'" too)
+            raise NotAServiceURL(f"{shown!r} is not a service URL: an IPv6 address is written in [ ], as "
+                                 "http://[::1]:8000")
         try:
             url = httpx.URL(self.base_url)
         except httpx.InvalidURL as exc:  # (httpx's own type: a traceback in the CLI, which reports ValueErrors)
-            raise ValueError(f"{base_url!r} is not a service URL: {exc}") from None
+            raise NotAServiceURL(f"{shown!r} is not a service URL: {exc}") from None
         if url.userinfo:  # httpx had sent it as Basic auth in place of the key's header (a 401), and each error quoted
             # the URL, its password with it; this one does not
-            raise ValueError(f"{re.sub(r'//[^/?#]*@', '//***@', base_url, count=1)!r} is not a service URL: it has a "
-                             "user name or password, which the service takes none of (its API key goes as --api-key or "
-                             "VOXE_API_KEY; the client's api_key)")
+            raise NotAServiceURL(f"{shown!r} is not a service URL: it has a user name or password, which the service "
+                                 "takes none of (its API key goes as --api-key or VOXE_API_KEY; the client's api_key)")
         if url.scheme not in ("http", "https") or not url.host:  # (each call had failed as a service not reached)
-            raise ValueError(f"{base_url!r} is not a service URL: it takes http:// or https:// and a host, as "
-                             f"{DEFAULT_URL}")
+            raise NotAServiceURL(f"{base_url!r} is not a service URL: it takes http:// or https:// and a host, as "
+                                 f"{DEFAULT_URL}")
         if url.port is not None and not 0 < url.port <= 65535:  # httpx takes any number, and the socket then
             # connects to it modulo 65536: --api http://host:80000 had sent every call, and its key, to port 14464
-            raise ValueError(f"{base_url!r} is not a service URL: its port {url.port} is none of 1 to 65535")
+            raise NotAServiceURL(f"{base_url!r} is not a service URL: its port {url.port} is none of 1 to 65535")
         if (tail := re.search(r"[?#].*", self.base_url, re.S)) is not None:  # httpx appends each call's path to
             # the query: --api "http://host:8000/?x=1" had sent every call to /?x=1/v1/... (a fragment: a page's place)
             part = "query" if tail[0][0] == "?" else "fragment"
-            raise ValueError(f"{base_url!r} is not a service URL: it has a {part}, {tail[0]!r}, which a base URL "
-                             f"takes none of (as {DEFAULT_URL} or https://host/prefix)")
+            raise NotAServiceURL(f"{base_url!r} is not a service URL: it has a {part}, {tail[0]!r}, which a base "
+                                 f"URL takes none of (as {DEFAULT_URL} or https://host/prefix)")
         self._http = httpx.Client(base_url=url, headers=headers, timeout=timeout, transport=transport)
 
     def __enter__(self) -> "Client":

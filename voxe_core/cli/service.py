@@ -175,8 +175,12 @@ def _client(args):
     import os
 
     from voxe_client import Client
+    from voxe_client.client import NotAServiceURL
 
-    return Client(args.api, api_key=args.api_key or os.environ.get("VOXE_API_KEY"))
+    try:
+        return Client(args.api, api_key=args.api_key or os.environ.get("VOXE_API_KEY"))
+    except NotAServiceURL as exc:  # (it had named no option)
+        raise ValueError(f"--api: {exc}") from None
 
 
 def _progress_bar(quiet: bool):
