@@ -557,6 +557,10 @@ def test_a_cached_model_whose_weights_cannot_be_read_is_told_to_be_fetched_again
     with pytest.raises(ModelNotAvailableError) as online:
         load_stable_diffusion("owner/sd", torch.float32, local_files_only=False)
     assert str(online.value).startswith(told) and "check the model id" not in str(online.value)
+    (repo / "refs" / "v2").write_text("abc123")  # a revision loaded: its download is told, not main's again
+    with pytest.raises(ModelNotAvailableError) as revision:
+        load_stable_diffusion("owner/sd", torch.float32, local_files_only=True, revision="v2")
+    assert str(revision.value).startswith(told.replace("owner/sd --force", "owner/sd --revision v2 --force"))
 
 
 def test_a_single_file_checkpoint_is_told_to_be_converted_not_missing(tmp_path):

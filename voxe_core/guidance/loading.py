@@ -42,20 +42,23 @@ def offline_env() -> bool:
     return os.environ.get("HF_HUB_OFFLINE", "").strip().lower() in ("1", "true", "yes", "on")
 
 
-def not_available_message(model: str, cause: BaseException | None, offline: bool = True, cached: bool = False) -> str:
+def not_available_message(model: str, cause: BaseException | None, offline: bool = True, cached: bool = False,
+                          revision: str | None = None) -> str:
     """The error text for missing weights: which model, how to get it, and what failed underneath. A folder is
     told to hold the model (a hub download of "./models/sd" had been its remedy), a hub id how to cache it, or, where
     downloads were allowed (``offline`` False), to check its id: a mistyped one had been told it was "not available
     offline" and to download it, though the hub had been asked and has no such model. A hub id whose files are all in
     the cache (``cached``) failed on reading them, and is told to fetch them again: a damaged weights file had been
-    told to check the model id (or that the model was not available offline)."""
+    told to check the model id (or that the model was not available offline). A ``revision`` other than main is in
+    each `hf download` advised (it had fetched main again, and the revision loaded stayed as it was)."""
+    download = f"hf download {model}" + (f" --revision {revision}" if revision not in (None, "main") else "")
     if model == TINY_MODEL and local_path(model) is None:
         msg = f"Stable Diffusion weights '{model}' are not available: {tiny_model_note('`voxe build-tiny-model DIR`')}."
     elif cached and local_path(model) is None:
         msg = (
             f"Stable Diffusion weights '{model}' are in the Hugging Face cache (HF_HOME) but could not be read: a "
             f"file of them is damaged (a download cut short, a disk error) or not this model's; download them again "
-            f"with `hf download {model} --force-download`."
+            f"with `{download} --force-download`."
         )
     elif local_path(model) is not None:
         msg = (
@@ -67,14 +70,14 @@ def not_available_message(model: str, cause: BaseException | None, offline: bool
         msg = (
             f"Stable Diffusion weights '{model}' could not be fetched from the Hugging Face hub"
             f"{no_folder_note(model)}: check the model id (a private or gated model also needs a token: "
-            f"`hf auth login`) and this machine's connection, or download them with `hf download {model}` on a "
+            f"`hf auth login`) and this machine's connection, or download them with `{download}` on a "
             f"machine with internet and point HF_HOME at that cache, or pass a local folder in the diffusers layout "
             f"({DIFFUSERS_LAYOUT})."
         )
     else:
         msg = (
             f"Stable Diffusion weights '{model}' are not available offline{no_folder_note(model)}: download them "
-            f"once with `huggingface-cli download {model}` (or `hf download {model}`) on a machine with internet and "
+            f"once with `huggingface-cli {download[3:]}` (or `{download}`) on a machine with internet and "
             f"point HF_HOME at that cache, or pass a local folder in the diffusers layout ({DIFFUSERS_LAYOUT})."
         )
     if cause is not None:
@@ -423,7 +426,7 @@ def load_stable_diffusion(model: str, dtype, local_files_only: bool | None = Non
     source = model if folder is None else folder
     fault = component_config_fault(model, revision)
     if fault is not None:
-        raise ModelNotAvailableError(not_available_message(model, ValueError(fault)))
+        raise ModelNotAvailableError(not_available_message(model, ValueError(fault), revision=revision))
     notice = download_notice(model, bool(local_files_only), revision=revision) if on_message is not None else None
     if notice is not None:
         on_message(notice)
@@ -441,7 +444,8 @@ def load_stable_diffusion(model: str, dtype, local_files_only: bool | None = Non
         if is_out_of_memory(exc):
             raise
         cached = folder is None and diffusers_model_present(model, revision)  # (nothing was to be fetched)
-        raise ModelNotAvailableError(not_available_message(model, exc, bool(local_files_only), cached)) from exc
+        raise ModelNotAvailableError(
+            not_available_message(model, exc, bool(local_files_only), cached, revision)) from exc
     if not tokenizer_fits(tokenizer, text_encoder.config.vocab_size):
         raise ModelNotAvailableError(
             not_available_message(
