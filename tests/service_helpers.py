@@ -491,6 +491,7 @@ class Service:
         self.extra_workers: list[Process] = []
         self.generation = 0
         self.api_generation = 0
+        self._operator_key: str | None = None
 
     @property
     def processes(self) -> list[Process]:
@@ -533,9 +534,20 @@ class Service:
                        processes=self.processes)
 
     def ready_workers(self) -> list[str]:
-        """The workers /readyz finds listening (none while it answers 503)."""
-        response = httpx.get(f"{self.base}/readyz", timeout=10)
+        """The workers /readyz finds listening (none while it answers 503). With authentication on, /readyz names
+        them only to a key's holder: the operator's key (:meth:`operator_key`) is sent."""
+        headers = {"Authorization": f"Bearer {self.operator_key()}"} if self.env.get("VOXE_AUTH") == "on" else {}
+        response = httpx.get(f"{self.base}/readyz", headers=headers, timeout=10)
         return response.json()["checks"]["worker"].get("workers", []) if response.status_code == 200 else []
+
+    def operator_key(self) -> str:
+        """A key made once by ``python -m api.admin create-key --name operator`` (the database migrated by the
+        API's start): its token."""
+        if self._operator_key is None:
+            made = subprocess.run([sys.executable, "-m", "api.admin", "create-key", "--name", "operator"],
+                                  env=self.env, capture_output=True, text=True, check=True, cwd=REPO)
+            self._operator_key = made.stdout.strip()
+        return self._operator_key
 
     def kill_worker(self) -> None:
         """SIGKILL, as a crashed machine or an OOM kill would."""
