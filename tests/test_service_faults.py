@@ -5049,17 +5049,25 @@ def s3_server(request, server: str):
             yield env
 
 
-@pytest.mark.parametrize("server", ["moto", "seaweedfs"])
-def test_a_multipart_s3_upload_failing_half_way_is_never_listed(db, tmp_path, monkeypatch, request, server):
-    """boto3 uploads large files in parts; a part that fails aborts the upload: no object, no row."""
+@contextlib.contextmanager
+def s3_bucket(request, server: str, monkeypatch):
+    """An S3Storage on a bucket of its own (moto keeps buckets per process) on ``s3_server``, its credentials set."""
     from voxe_service.storage import S3Storage
-    from worker.runtime import publish_artifact
 
     with s3_server(request, server) as env:
         for key in ("AWS_ACCESS_KEY_ID", "AWS_SECRET_ACCESS_KEY", "AWS_DEFAULT_REGION"):
             monkeypatch.setenv(key, env[key])
-        bucket = f"voxe-faults-{uuid.uuid4().hex[:8]}"  # moto keeps buckets per process: one of its own
-        storage = S3Storage(bucket, endpoint_url=env["VOXE_S3_ENDPOINT_URL"], region="us-east-1")
+        yield S3Storage(f"voxe-faults-{uuid.uuid4().hex[:8]}", endpoint_url=env["VOXE_S3_ENDPOINT_URL"],
+                        region="us-east-1")
+
+
+@pytest.mark.parametrize("server", ["moto", "seaweedfs"])
+def test_a_multipart_s3_upload_failing_half_way_is_never_listed(db, tmp_path, monkeypatch, request, server):
+    """boto3 uploads large files in parts; a part that fails aborts the upload: no object, no row."""
+    from worker.runtime import publish_artifact
+
+    with s3_bucket(request, server, monkeypatch) as storage:
+        bucket = storage.bucket
         job_id = add_job(add_scene(), "running", 0, "w@host", "edit")
         big = tmp_path / "grid.safetensors"
         big.write_bytes(os.urandom(20 * 1024 * 1024))  # above boto3's 8 MiB multipart threshold
@@ -5083,44 +5091,52 @@ def test_a_multipart_s3_upload_failing_half_way_is_never_listed(db, tmp_path, mo
         assert listed(job_id) == [("edited_grid.safetensors", len(data), hashlib.sha256(data).hexdigest())]
         assert data == big.read_bytes()
 
+def killed_after_its_first_part(storage, source: os.PathLike, key: str) -> None:
+    """A process storing ``source`` at ``key`` of ``storage``'s bucket (S3Storage, a multipart upload), SIGKILLed once
+    it has uploaded a part: the parts it leaves, as an API or worker killed mid-upload does."""
+    import signal
+    import subprocess
+    import sys
+
+    from service_helpers import REPO
+
+    writer = ("import sys, time\n"
+              "from voxe_service.storage import S3Storage\n"
+              "storage = S3Storage(sys.argv[1], endpoint_url=sys.argv[2], region='us-east-1')\n"
+              "storage.client.meta.events.register('after-call.s3.UploadPart',\n"
+              "                                    lambda **_: (print('part', flush=True), time.sleep(60)))\n"
+              "storage.put_file(sys.argv[4], sys.argv[3])\n")
+    proc = subprocess.Popen([sys.executable, "-c", writer, storage.bucket, storage.client.meta.endpoint_url,
+                             str(source), key], cwd=REPO, stdout=subprocess.PIPE,
+                            env={**os.environ, "PYTHONPATH": str(REPO)})
+    try:
+        assert proc.stdout.readline().startswith(b"part")  # (two part threads may print on one line)
+    finally:
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(10)
+
+
+def multipart_uploads(storage) -> list[str]:
+    """The keys of the unfinished multipart uploads in ``storage``'s bucket (sorted: S3 lists them by key, SeaweedFS
+    not)."""
+    return sorted(u["Key"] for u in storage.client.list_multipart_uploads(Bucket=storage.bucket).get("Uploads", []))
+
 
 @pytest.mark.parametrize("server", ["moto", "seaweedfs"])
 def test_the_parts_an_s3_writer_killed_mid_upload_left_go_with_its_job(tmp_path, monkeypatch, caplog, request, server):
     """SIGKILL a process whose multipart upload has stored a part: S3 keeps the parts (and bills them) under an upload
     no object listing shows, and deleting the job's prefix had left them for ever. They are aborted with it; another
     job's are not touched."""
-    import signal
-    import subprocess
-    import sys
-
-    from service_helpers import REPO
-    from voxe_service.storage import S3Storage
 
     source = tmp_path / "edit.safetensors"
     source.write_bytes(os.urandom(20 * 1024 * 1024))  # above boto3's 8 MiB multipart threshold
-    writer = ("import sys, time\n"
-              "from voxe_service.storage import S3Storage\n"
-              "storage = S3Storage(sys.argv[1], endpoint_url=sys.argv[2], region='us-east-1')\n"
-              "storage.client.meta.events.register('after-call.s3.UploadPart',\n"
-              "                                    lambda **_: (print('part', flush=True), time.sleep(60)))\n"
-              "storage.put_file('jobs/j/checkpoints/edit.safetensors', sys.argv[3])\n")
-    with s3_server(request, server) as env:
-        for key in ("AWS_ACCESS_KEY_ID", "AWS_SECRET_ACCESS_KEY", "AWS_DEFAULT_REGION"):
-            monkeypatch.setenv(key, env[key])
-        bucket = f"voxe-faults-{uuid.uuid4().hex[:8]}"
-        storage = S3Storage(bucket, endpoint_url=env["VOXE_S3_ENDPOINT_URL"], region="us-east-1")
-        proc = subprocess.Popen([sys.executable, "-c", writer, bucket, env["VOXE_S3_ENDPOINT_URL"], str(source)],
-                                cwd=REPO, stdout=subprocess.PIPE, env={**os.environ, "PYTHONPATH": str(REPO)})
-        try:
-            assert proc.stdout.readline().startswith(b"part")  # (two part threads may print on one line)
-        finally:
-            proc.send_signal(signal.SIGKILL)
-            proc.wait(10)
+    with s3_bucket(request, server, monkeypatch) as storage:
+        bucket = storage.bucket
+        killed_after_its_first_part(storage, source, "jobs/j/checkpoints/edit.safetensors")
         other = storage.client.create_multipart_upload(Bucket=bucket, Key="jobs/other/edit.safetensors")
 
         def uploads() -> list[str]:
-            # (sorted: S3 lists them by key, SeaweedFS not)
-            return sorted(u["Key"] for u in storage.client.list_multipart_uploads(Bucket=bucket).get("Uploads", []))
+            return multipart_uploads(storage)
 
         assert storage.list() == [] and uploads() == ["jobs/j/checkpoints/edit.safetensors",
                                                       "jobs/other/edit.safetensors"]
@@ -5180,41 +5196,19 @@ def test_the_reaper_aborts_the_parts_of_an_upload_whose_api_process_was_killed_m
     no scene row, and nothing had ever aborted them (a prefix's cleanup starts from a row). Once as old as
     VOXE_ORPHANED_UPLOAD_AGE_S the reaper aborts them; a recorded scene's object stays, and before that age nothing
     goes (SeaweedFS: moto dates its uploads in 2010)."""
-    import signal
-    import subprocess
-    import sys
-
     from api import reaper
-    from service_helpers import REPO
     from voxe_service.models import system_now
-    from voxe_service.storage import S3Storage
 
     source = tmp_path / "dataset.zip"
     source.write_bytes(os.urandom(20 * 1024 * 1024))  # above boto3's 8 MiB multipart threshold
-    writer = ("import sys, time\n"
-              "from voxe_service.storage import S3Storage\n"
-              "storage = S3Storage(sys.argv[1], endpoint_url=sys.argv[2], region='us-east-1')\n"
-              "storage.client.meta.events.register('after-call.s3.UploadPart',\n"
-              "                                    lambda **_: (print('part', flush=True), time.sleep(60)))\n"
-              "storage.put_file('scenes/' + sys.argv[4] + '/dataset.zip', sys.argv[3])\n")
     orphan, recorded = uuid.uuid4().hex, add_scene()
-    with s3_server(request, server) as env:
-        for key in ("AWS_ACCESS_KEY_ID", "AWS_SECRET_ACCESS_KEY", "AWS_DEFAULT_REGION"):
-            monkeypatch.setenv(key, env[key])
-        bucket = f"voxe-faults-{uuid.uuid4().hex[:8]}"
-        storage = S3Storage(bucket, endpoint_url=env["VOXE_S3_ENDPOINT_URL"], region="us-east-1")
+    with s3_bucket(request, server, monkeypatch) as storage:
         monkeypatch.setattr(reaper, "get_storage", lambda _settings: storage)
         storage.put_bytes(f"scenes/{recorded}/dataset.zip", b"zip")
-        proc = subprocess.Popen([sys.executable, "-c", writer, bucket, env["VOXE_S3_ENDPOINT_URL"], str(source),
-                                 orphan], cwd=REPO, stdout=subprocess.PIPE, env={**os.environ, "PYTHONPATH": str(REPO)})
-        try:
-            assert proc.stdout.readline().startswith(b"part")  # (the threads of two parts may print at once)
-        finally:
-            proc.send_signal(signal.SIGKILL)
-            proc.wait(10)
+        killed_after_its_first_part(storage, source, f"scenes/{orphan}/dataset.zip")
 
         def uploads() -> list[str]:
-            return sorted(u["Key"] for u in storage.client.list_multipart_uploads(Bucket=bucket).get("Uploads", []))
+            return multipart_uploads(storage)
 
         assert uploads() == [f"scenes/{orphan}/dataset.zip"]
         if server == "seaweedfs":  # (moto dates every multipart upload 2010-11-10: none is young there)
@@ -5267,16 +5261,12 @@ def test_the_reaper_deletes_s3_objects_and_parts_of_jobs_and_reconstructions_no_
     multipart uploads in 2010: the young check is SeaweedFS's)."""
     from api import reaper
     from voxe_service.models import system_now
-    from voxe_service.storage import S3Storage
 
     scene = add_scene()
     job, rec = add_job(scene, "succeeded", 0), add_reconstruction(scene)
     orphan_job, orphan_rec = uuid.uuid4().hex, uuid.uuid4().hex
-    with s3_server(request, server) as env:
-        for key in ("AWS_ACCESS_KEY_ID", "AWS_SECRET_ACCESS_KEY", "AWS_DEFAULT_REGION"):
-            monkeypatch.setenv(key, env[key])
-        bucket = f"voxe-faults-{uuid.uuid4().hex[:8]}"
-        storage = S3Storage(bucket, endpoint_url=env["VOXE_S3_ENDPOINT_URL"], region="us-east-1")
+    with s3_bucket(request, server, monkeypatch) as storage:
+        bucket = storage.bucket
         monkeypatch.setattr(reaper, "get_storage", lambda _settings: storage)
         kept = [f"jobs/{job}/result.safetensors", f"reconstructions/{rec}/grid.safetensors"]
         for key in kept + [f"jobs/{orphan_job}/result.safetensors"]:
