@@ -631,6 +631,25 @@ def test_behind_a_proxy_prefix_the_405_still_names_the_paths_methods(client):
     assert refused.status_code == 405 and refused.headers["allow"] == "GET, HEAD, OPTIONS, POST"
 
 
+def test_each_proxy_prefix_reads_its_own_servers_in_the_document(client):
+    """One service reached under two prefixes and directly: FastAPI 0.132.0, which pyproject.toml had allowed, kept
+    the first request's prefix as every later document's ``servers`` (Try it out and generated clients calling the
+    other prefix's paths); 0.132.1 names each request's own."""
+    import tomllib
+    from importlib.metadata import version
+    from pathlib import Path
+
+    from packaging.requirements import Requirement
+
+    for prefix in ("/api", "/b", ""):
+        with TestClient(client.app, root_path=prefix) as reached:
+            assert reached.get(f"{prefix}/openapi.json").json().get("servers") == (
+                [{"url": prefix}] if prefix else None), prefix
+    project = tomllib.loads((Path(__file__).resolve().parents[1] / "pyproject.toml").read_text())["project"]
+    required = next(r for r in map(Requirement, project["dependencies"]) if r.name == "fastapi")
+    assert not required.specifier.contains("0.132.0") and required.specifier.contains(version("fastapi"))
+
+
 def test_every_v1_operation_documents_auth_and_body_statuses(spec):
     for path, item in spec["paths"].items():
         for method, operation in item.items():
