@@ -57,23 +57,30 @@ PAGE = (STATIC_DIR / "index.html").read_text()
 _PAGE_LINK = re.compile(r'\b(href|src)="/(?!/)')  # the page's links to this service: "/static/app.js", "/docs"
 
 
-@router.api_route("/", methods=["GET", "HEAD"])
-def index(request: Request) -> Response:
+def page(scope: Scope) -> Response:
     """The page; under a proxy's prefix with its links to ``/static`` and ``/docs`` under it too (they had pointed
     at the proxy's top, another site's pages or none)."""
-    headers, root = {"Cache-Control": REVALIDATE, "Content-Security-Policy": UI_POLICY}, root_of(request.scope)
+    headers, root = {"Cache-Control": REVALIDATE, "Content-Security-Policy": UI_POLICY}, root_of(scope)
     if not root:
         return FileResponse(STATIC_DIR / "index.html", headers=headers)
     prefix = html.escape(root)
     return HTMLResponse(_PAGE_LINK.sub(lambda link: f'{link[1]}="{prefix}/', PAGE), headers=headers)
 
 
+@router.api_route("/", methods=["GET", "HEAD"])
+def index(request: Request) -> Response:
+    return page(request.scope)
+
+
 class UiStaticFiles(StaticFiles):
     """``/static`` with the Cache-Control above (a missing file raises its 404 in ``super()``), and the UI's policy
-    on every file: the page is also ``/static/index.html``, which had been served with none."""
+    on every file: the page is also ``/static/index.html``, which had been served with none, and under a proxy's
+    prefix is the page ``/`` serves (the file's links, at the proxy's top, had left it bare)."""
 
     async def get_response(self, path: str, scope: Scope) -> Response:
         response = await super().get_response(path, scope)
+        if path == "index.html" and root_of(scope):
+            return page(scope)
         response.headers["Cache-Control"] = IMMUTABLE if path.startswith("vendor/") else REVALIDATE
         response.headers["Content-Security-Policy"] = UI_POLICY
         return response

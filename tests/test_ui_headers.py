@@ -190,3 +190,18 @@ def test_behind_a_proxy_prefix_the_page_and_docs_link_under_it(client):
     page, docs = client.get("/"), client.get("/docs")  # at the top, as before
     assert 'src="/static/app.js"' in page.text and "url: '/openapi.json'" in docs.text
     assert f"script-src 'self' {inline_sources(docs.text, 'script')};" in docs.headers["content-security-policy"]
+
+
+def test_behind_a_proxy_prefix_the_page_as_a_static_file_links_under_it_too(client):
+    """/api/static/index.html, the page reached as its file, had kept the file's links (/static/app.js, /docs) at the
+    proxy's top: it came up bare. It is the page /api/ serves; at the top the file, as before."""
+    from api.ui import STATIC_DIR
+
+    with TestClient(client.app, root_path="/api") as proxied:
+        as_file = proxied.get("/api/static/index.html")
+        assert as_file.status_code == 200 and 'src="/api/static/app.js"' in as_file.text
+        assert as_file.text == proxied.get("/api/").text
+        assert as_file.headers["content-security-policy"] == proxied.get("/api/").headers["content-security-policy"]
+        assert proxied.head("/api/static/index.html").status_code == 200
+        assert proxied.post("/api/static/index.html").status_code == 405
+    assert client.get("/static/index.html").content == (STATIC_DIR / "index.html").read_bytes()
