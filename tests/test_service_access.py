@@ -1536,3 +1536,36 @@ def test_readyz_with_the_database_down_does_not_tell_a_key_holder_to_send_a_key(
                                         "check's details and the models' availability are shown to a live key's "
                                         "holder once it is")
     assert "connection refused" not in answer.text
+
+
+def test_readyz_answers_within_its_deadline_while_the_database_hangs(auth_client, monkeypatch):
+    """A database that accepts and never answers (hung, partitioned): the checks are cut at their deadline
+    (VOXE_READINESS_TIMEOUT_S x 3 + 2 s), but the models' availability and a key's check then waited on the database
+    in the request itself, each up to a connect timeout (10 s, or the pool's 30 s), and a load balancer's probe got no
+    answer in time while the request held a thread. Both are bounded by the same deadline now: 503, the database
+    check failed, and a key holder told that the key could not be checked."""
+    import contextlib
+
+    import api.routes.health as health
+    from voxe_service.settings import get_settings
+
+    _, token = _create_key("operator")
+    release = threading.Event()
+
+    @contextlib.contextmanager
+    def database_hung():
+        release.wait(30)
+        raise ConnectionRefusedError("released")
+        yield  # (a generator: never reached)
+
+    monkeypatch.setattr(get_settings(), "readiness_timeout_s", 0.2)  # a deadline of 2.6 s
+    monkeypatch.setattr(health, "session_scope", database_hung)
+    try:
+        for headers in ({}, bearer(token)):
+            started = time.monotonic()
+            answer = auth_client.get("/readyz", headers=headers)
+            assert time.monotonic() - started < 6, headers
+            assert answer.status_code == 503 and answer.json()["checks"]["database"] == {"ok": False}
+        assert answer.json()["details"].startswith("the API key sent could not be checked")
+    finally:
+        release.set()

@@ -77,6 +77,8 @@ def _model_report(settings: Settings) -> dict:
 
 
 _ASK_FOR_A_KEY = "send an API key for each check's details and the models' availability"
+_KEY_UNCHECKED = ("the API key sent could not be checked (the database is not reachable): each check's details and the "
+                  "models' availability are shown to a live key's holder once it is")
 
 
 def _hidden_because(request: Request, settings: Settings) -> str | None:
@@ -93,8 +95,7 @@ def _hidden_because(request: Request, settings: Settings) -> str | None:
         with session_scope() as session:
             return None if refusal(key_of_token(session, token), token) is None else _ASK_FOR_A_KEY
     except Exception:  # noqa: BLE001 - no database to check the key in: the checks say so
-        return ("the API key sent could not be checked (the database is not reachable): each check's details and the "
-                "models' availability are shown to a live key's holder once it is")
+        return _KEY_UNCHECKED
 
 
 @router.get("/readyz", summary="Readiness: database, broker, storage and at least one worker",
@@ -110,25 +111,38 @@ def readyz(request: Request, settings: SettingsDep, queue: QueueDep, storage: St
     }
     results: dict[str, dict] = {}
     started = time.monotonic()
-    pool = ThreadPoolExecutor(len(checks), thread_name_prefix="readyz")
+    pool = ThreadPoolExecutor(len(checks) + 2, thread_name_prefix="readyz")
     try:
         futures = {name: pool.submit(check) for name, check in checks.items()}
+        # The models' availability and the key's check read the database too: under the same deadline (a database
+        # that never answers had held the answer, and the request's thread, a connect timeout for each after it).
+        models, key_check = pool.submit(_model_report, settings), pool.submit(_hidden_because, request, settings)
         deadline = started + settings.readiness_timeout_s * 3 + 2
+
+        def by_deadline(future):
+            return future.result(timeout=max(0.0, deadline - time.monotonic()))
+
         for name, future in futures.items():
             try:
-                results[name] = future.result(timeout=max(0.0, deadline - time.monotonic()))
+                results[name] = by_deadline(future)
             except TimeoutError:
                 results[name] = {"ok": False, "error": "timed out"}
             except Exception as exc:  # noqa: BLE001 - reported, not raised
                 results[name] = {"ok": False, "error": f"{type(exc).__name__}: {exc}"}
+        try:
+            availability = by_deadline(models)
+        except TimeoutError:
+            availability = {"error": "timed out"}
+        except Exception as exc:  # noqa: BLE001 - the database check above says why
+            availability = {"error": f"{type(exc).__name__}: {exc}"}
+        try:
+            hidden = by_deadline(key_check)
+        except TimeoutError:
+            hidden = _KEY_UNCHECKED
     finally:
         pool.shutdown(wait=False, cancel_futures=True)
     ready = all(r.get("ok") for r in results.values())
-    try:
-        availability = _model_report(settings)
-    except Exception as exc:  # noqa: BLE001 - the database check above says why
-        availability = {"error": f"{type(exc).__name__}: {exc}"}
-    if (hidden := _hidden_because(request, settings)) is not None:
+    if hidden is not None:
         return JSONResponse({"status": "ready" if ready else "not ready",
                              "checks": {name: {"ok": bool(result.get("ok"))} for name, result in results.items()},
                              "details": hidden},
