@@ -1569,3 +1569,25 @@ def test_readyz_answers_within_its_deadline_while_the_database_hangs(auth_client
         assert answer.json()["details"].startswith("the API key sent could not be checked")
     finally:
         release.set()
+
+
+def test_readyz_with_authentication_off_shows_its_details_only_to_a_local_caller(local_client, root):  # noqa: F811
+    """With authentication off, only loopback requests from this machine are served as the local key (a /v1 request
+    that came in on another address, that a proxy relayed or that names another host is a 401), but /readyz showed
+    every caller the storage path, the broker's URL, worker hostnames and the errors' text: a proxy in front, or a
+    page of another site whose name was pointed at 127.0.0.1 (DNS rebinding), read the deployment's internals. Such
+    a caller now gets what a caller without a key gets with authentication on, told why; a local one every detail."""
+    local = local_client.get("/readyz")
+    assert local.status_code == 503 and "model_availability" in local.json() and str(root) in local.text
+    for headers, why in (({"X-Forwarded-For": "203.0.113.9"}, "relayed by a proxy (its X-Forwarded-For header)"),
+                         ({"Host": "rebound.example"}, "names another host (Host: rebound.example)")):
+        answer = local_client.get("/readyz", headers=headers)
+        assert answer.status_code == 503
+        assert answer.json()["checks"] == {"database": {"ok": True}, "broker": {"ok": True}, "storage": {"ok": True},
+                                           "worker": {"ok": False}}
+        assert set(answer.json()) == {"status", "checks", "details"} and str(root) not in answer.text
+        assert answer.json()["details"].startswith("authentication is off, so each check's details and the models' "
+                                                   "availability are shown only to loopback connections from this "
+                                                   "machine, and this one "), answer.json()
+        assert why in answer.json()["details"]
+        assert local_client.get("/v1/scenes", headers=headers).status_code == 401  # (as the API itself answers it)

@@ -8,7 +8,7 @@ from fastapi import APIRouter, Request
 from fastapi.responses import JSONResponse
 from sqlalchemy import text
 
-from api.auth import key_of_token, presented_token, refusal
+from api.auth import key_of_token, not_local, presented_token, refusal
 from api.deps import QueueDep, SettingsDep, StorageDep
 from voxe_service.db import session_scope
 from voxe_service.model_inventory import ROLES, live_worker_models
@@ -82,13 +82,16 @@ _KEY_UNCHECKED = ("the API key sent could not be checked (the database is not re
 
 
 def _hidden_because(request: Request, settings: Settings) -> str | None:
-    """Why /readyz shows this caller none of its checks' details (None: it shows them, authentication off or a live
-    key presented). They name the deployment's internals (the storage path or bucket, the broker's URL, worker
-    hostnames, the errors' text), and /readyz needs no key: a load balancer needs only the status and which check
-    failed. A key that cannot be checked (the database down) is told so: "send an API key" had answered the operator
-    who sent theirs."""
+    """Why /readyz shows this caller none of its checks' details (None: it shows them, a live key presented, or
+    authentication off and the request one the API serves as the local key). They name the deployment's internals
+    (the storage path or bucket, the broker's URL, worker hostnames, the errors' text), and /readyz needs no key: a
+    load balancer needs only the status and which check failed. With authentication off they had been shown to any
+    caller, one a proxy relayed or a page of another site too, which /v1 refuses (``not_local``). A key that cannot be
+    checked (the database down) is told so: "send an API key" had answered the operator who sent theirs."""
     if not settings.auth_enabled:
-        return None
+        why = not_local(request.scope, settings)
+        return None if why is None else ("authentication is off, so each check's details and the models' availability "
+                                         f"are shown only to loopback connections from this machine, and {why}")
     if not (token := presented_token(request)):
         return _ASK_FOR_A_KEY
     try:
@@ -99,8 +102,9 @@ def _hidden_because(request: Request, settings: Settings) -> str | None:
 
 
 @router.get("/readyz", summary="Readiness: database, broker, storage and at least one worker",
-            responses={503: {"description": "a dependency is down; the body says which (with authentication on, "
-                                            "its details only to a caller presenting a live key)"}})
+            responses={503: {"description": "a dependency is down; the body says which (its details only to a "
+                                            "caller presenting a live key, or with authentication off to a local "
+                                            "one)"}})
 def readyz(request: Request, settings: SettingsDep, queue: QueueDep, storage: StorageDep):
     celery = queue.app
     checks = {
