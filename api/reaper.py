@@ -325,7 +325,7 @@ def reap_orphaned_uploads(settings: Settings, now: datetime | None = None) -> li
     orphans = []
     for prefix, model, kind in ORPHANS_SWEPT:
         newest: dict[str, datetime] = {}
-        for key, written in storage.written_at(prefix).items():
+        for key, written in storage.written_at(prefix):  # (one time per row id kept, not the whole listing)
             row_id = key.split("/")[1]
             newest[row_id] = max(written, newest.get(row_id, written))
         old = [row_id for row_id, written in newest.items() if written < cutoff]

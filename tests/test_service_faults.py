@@ -5185,9 +5185,46 @@ def test_the_reaper_deletes_an_upload_no_scene_records_once_old_and_keeps_young_
     with caplog.at_level(logging.WARNING, logger="voxe.reaper"):
         assert sorted(reaper.reap_orphaned_uploads(db)) == sorted(map(scene_key, [orphan, half_written]))
     assert f"deleted the stored objects under scenes/{orphan}/, which no scene records" in caplog.text
-    assert storage.written_at("scenes/").keys() == {scene_key(young, "dataset.zip"), scene_key(recorded, "dataset.zip")}
+    assert dict(storage.written_at("scenes/")).keys() == {scene_key(young, "dataset.zip"),
+                                                          scene_key(recorded, "dataset.zip")}
     assert not (storage.root / "scenes" / half_written).exists()
 
+
+
+def test_the_reapers_sweep_of_a_large_bucket_holds_a_page_of_its_listing_not_all_of_it(db, monkeypatch):
+    """The hourly sweep for unrecorded uploads lists every stored object: S3's listing had been gathered whole, one
+    entry per object (a key and its time: 100,000 of them, ~15 MB; an evaluation's renders alone are 100 objects),
+    before any was looked at, in the API process. It now reads the listing a page (1,000 objects) at a time, keeping
+    one time per job, scene or reconstruction."""
+    import tracemalloc
+    from types import SimpleNamespace
+
+    from api import reaper
+    from voxe_service.models import system_now
+    from voxe_service.storage import S3Storage
+
+    written, pages_served, pages = system_now(), [], [1]
+
+    def objects(Bucket, Prefix):  # noqa: N803 - boto3's parameter names
+        for page in range(pages[0] if Prefix == "jobs/" else 0):
+            pages_served.append(page)
+            yield {"Contents": [{"Key": f"jobs/{page % 10:032x}/ring_{page:03d}_{n:04d}.png", "LastModified": written}
+                                for n in range(1000)]}
+
+    listings = {"list_objects_v2": objects, "list_multipart_uploads": lambda Bucket, Prefix: iter([{}])}  # noqa: N803
+    client = SimpleNamespace(get_paginator=lambda name: SimpleNamespace(paginate=listings[name]))
+    monkeypatch.setattr(reaper, "get_storage", lambda _settings: S3Storage("bucket", client=client,
+                                                                           create_bucket=False))
+    assert reaper.reap_orphaned_uploads(db) == []  # (a page first: what a first sweep imports is not counted)
+    pages[0], pages_served[:] = 100, []
+    tracemalloc.start()
+    try:
+        assert reaper.reap_orphaned_uploads(db) == []  # (all young: nothing looked up, nothing deleted)
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    assert len(pages_served) == 100
+    assert peak < 4_000_000, f"the sweep held {peak / 1e6:.1f} MB at its peak"
 
 @pytest.mark.parametrize("server", ["moto", "seaweedfs"])
 def test_the_reaper_aborts_the_parts_of_an_upload_whose_api_process_was_killed_mid_store(tmp_path, monkeypatch,

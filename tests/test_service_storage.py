@@ -77,11 +77,11 @@ def test_written_at_gives_each_keys_time_unfinished_writes_included(storage, tmp
         unfinished = "scenes/c/dataset.zip"
         upload = storage.client.create_multipart_upload(Bucket=storage.bucket, Key=storage.prefix + unfinished)
     try:
-        times = storage.written_at("scenes/")
+        times = dict(storage.written_at("scenes/"))
         assert times.keys() == {"scenes/a/dataset.zip", unfinished}
         now = datetime.now(timezone.utc)
         assert abs(times["scenes/a/dataset.zip"] - now) < timedelta(minutes=1)
-        assert storage.written_at("scenes//") == {} and storage.written_at("nothing/") == {}
+        assert list(storage.written_at("scenes//")) == [] and list(storage.written_at("nothing/")) == []
     finally:
         if not isinstance(storage, LocalStorage):
             storage.client.abort_multipart_upload(Bucket=storage.bucket, Key=upload["Key"], UploadId=upload["UploadId"])

@@ -151,9 +151,11 @@ class Storage(ABC):
     def list(self, prefix: str = "") -> list[str]: ...
 
     @abstractmethod
-    def written_at(self, prefix: str = "") -> dict[str, datetime]:
-        """When each key under ``prefix`` was last written (timezone-aware), unfinished writes included: a local
-        writer's temporary file under its own name, an S3 multipart upload under its key, from its start."""
+    def written_at(self, prefix: str = "") -> Iterator[tuple[str, datetime]]:
+        """(key, when it was last written, timezone-aware) for each key under ``prefix``, unfinished writes included:
+        a local writer's temporary file under its own name, an S3 multipart upload under its key, from its start (a
+        key may come twice: an object and an upload). Read as listed (S3: a page at a time), not gathered whole: the
+        reaper's sweep reads every stored object's."""
 
     @abstractmethod
     def delete(self, key: str) -> None:
@@ -319,14 +321,12 @@ class LocalStorage(Storage):
     def list(self, prefix="") -> list[str]:
         return sorted(name for name, writing in self._files(prefix) if not writing)
 
-    def written_at(self, prefix="") -> dict[str, datetime]:
-        times = {}
+    def written_at(self, prefix="") -> Iterator[tuple[str, datetime]]:
         for name, _writing in self._files(prefix):
             try:
-                times[name] = datetime.fromtimestamp((self.root / name).stat().st_mtime, timezone.utc)
+                yield name, datetime.fromtimestamp((self.root / name).stat().st_mtime, timezone.utc)
             except FileNotFoundError:  # deleted (or renamed into place) since it was listed
                 continue
-        return times
 
     def delete_prefix(self, prefix: str) -> int:
         """Also removes the temporary files of writers killed mid-write under ``prefix`` (never listed)."""
@@ -596,24 +596,21 @@ class S3Storage(Storage):
                 keys += [obj["Key"][len(self.prefix):] for obj in page.get("Contents", [])]
         return sorted(keys)
 
-    def written_at(self, prefix="") -> dict[str, datetime]:
+    def written_at(self, prefix="") -> Iterator[tuple[str, datetime]]:
         if not _may_start_a_key(prefix):
-            return {}
-        times = {}
+            return
         with self._as_storage_errors():
             for page in self.client.get_paginator("list_objects_v2").paginate(Bucket=self.bucket,
                                                                                Prefix=self.prefix + prefix):
-                times |= {obj["Key"][len(self.prefix):]: obj["LastModified"] for obj in page.get("Contents", [])}
+                yield from ((obj["Key"][len(self.prefix):], obj["LastModified"]) for obj in page.get("Contents", []))
         try:
             with self._as_storage_errors():
                 for page in self.client.get_paginator("list_multipart_uploads").paginate(Bucket=self.bucket,
                                                                                           Prefix=self.prefix + prefix):
-                    for upload in page.get("Uploads", []):
-                        key = upload["Key"][len(self.prefix):]
-                        times[key] = max(times.get(key, upload["Initiated"]), upload["Initiated"])
+                    yield from ((upload["Key"][len(self.prefix):], upload["Initiated"])
+                                for upload in page.get("Uploads", []))
         except StorageError as exc:  # a role without the multipart permissions: the objects' times still count
             log.warning("could not list the unfinished uploads under %r (%s)", prefix, exc)
-        return times
 
     def delete(self, key) -> None:
         with self._as_storage_errors():
