@@ -318,7 +318,7 @@ ORPHANS_SWEPT = ((SCENES_PREFIX, Scene, "scene"), (JOBS_PREFIX, Job, "job"),
 def reap_orphaned_uploads(settings: Settings, now: datetime | None = None) -> list[str]:
     """Delete what lies under a ``scenes/<id>/``, ``jobs/<id>/`` or ``reconstructions/<id>/`` prefix no row records,
     last written ``orphaned_upload_age_s`` ago (their unfinished S3 multipart uploads aborted: ``delete_prefix``);
-    returns those prefixes. An API process killed mid-store, or between storing and recording, or a delete whose
+    returns the prefixes deleted (one whose delete failed stays, logged, for the next sweep). An API process killed mid-store, or between storing and recording, or a delete whose
     storage cleanup failed after its rows went, had left them for good: every other cleanup starts from a row."""
     storage = get_storage(settings)
     cutoff = (now or system_now()) - timedelta(seconds=settings.orphaned_upload_age_s)
@@ -333,12 +333,12 @@ def reap_orphaned_uploads(settings: Settings, now: datetime | None = None) -> li
         with session_scope() as session:
             for start in range(0, len(old), 500):
                 recorded |= set(session.scalars(select(model.id).where(model.id.in_(old[start:start + 500]))))
-        unrecorded = [f"{prefix}{row_id}/" for row_id in old if row_id not in recorded]
-        storage.discard_prefixes(*unrecorded)
-        for orphan in unrecorded:
+        # (one whose delete failed is the cleanup's warning alone, and stays for the next sweep)
+        deleted = storage.discard_prefixes(*[f"{prefix}{row_id}/" for row_id in old if row_id not in recorded])
+        for orphan in deleted:
             log.warning("reaper: deleted the stored objects under %s, which no %s records (a process stopped between "
                         "storing and recording them, or their cleanup failed after a delete)", orphan, kind)
-        orphans += unrecorded
+        orphans += deleted
     return orphans
 
 

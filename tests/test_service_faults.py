@@ -5191,6 +5191,36 @@ def test_the_reaper_deletes_an_upload_no_scene_records_once_old_and_keeps_young_
 
 
 
+def test_the_reaper_says_it_deleted_only_the_unrecorded_uploads_whose_delete_worked(db, caplog, monkeypatch):
+    """The sweep logged "deleted the stored objects under scenes/<id>/" (and returned the prefix) for each orphan,
+    also where the delete failed (a role denied DeleteObject, the store down: the cleanup's own warning said so just
+    before), every hour, the objects still there. It now names as deleted only those that were; a failed one is
+    the cleanup's warning alone, and stays for the next sweep."""
+    from api import reaper
+    from voxe_service.storage import StorageError, get_storage, scene_key
+
+    storage = get_storage(db)
+    old = time.time() - db.orphaned_upload_age_s - 60
+    denied, deleted = uuid.uuid4().hex, uuid.uuid4().hex
+    for scene_id in (denied, deleted):
+        storage.put_bytes(scene_key(scene_id, "dataset.zip"), b"zip")
+        os.utime(storage.path(scene_key(scene_id, "dataset.zip")), (old, old))
+    delete = storage.delete
+
+    def denying(key):
+        if key.startswith(scene_key(denied)):
+            raise StorageError(f"AccessDenied: may not delete {key}")
+        delete(key)
+
+    monkeypatch.setattr(storage, "delete", denying)
+    with caplog.at_level(logging.WARNING):
+        assert reaper.reap_orphaned_uploads(db) == [scene_key(deleted)]
+    assert f"deleted the stored objects under {scene_key(deleted)}, which no scene records" in caplog.text
+    assert f"deleted the stored objects under {scene_key(denied)}" not in caplog.text
+    assert f"could not delete the stored objects under {scene_key(denied)}" in caplog.text
+    assert storage.list(scene_key(denied)) == [scene_key(denied, "dataset.zip")] and not storage.list(scene_key(deleted))
+
+
 def test_the_reapers_sweep_of_a_large_bucket_holds_a_page_of_its_listing_not_all_of_it(db, monkeypatch):
     """The hourly sweep for unrecorded uploads lists every stored object: S3's listing had been gathered whole, one
     entry per object (a key and its time: 100,000 of them, ~15 MB; an evaluation's renders alone are 100 objects),

@@ -167,14 +167,19 @@ class Storage(ABC):
             self.delete(key)
         return len(keys)
 
-    def discard_prefixes(self, *prefixes: str) -> None:
+    def discard_prefixes(self, *prefixes: str) -> list[str]:
         """Delete what lies under each prefix as cleanup: objects no record refers to any more, so a failure is
-        logged (the objects stay behind, harming nothing but space) rather than raised over the caller's answer."""
+        logged (the objects stay behind, harming nothing but space) rather than raised over the caller's answer.
+        Returns the prefixes whose delete worked."""
+        discarded = []
         for prefix in prefixes:
             try:
                 self.delete_prefix(prefix)
             except Exception:  # noqa: BLE001 - see the docstring
                 log.warning("could not delete the stored objects under %s", prefix, exc_info=True)
+            else:
+                discarded.append(prefix)
+        return discarded
 
     def discard(self, key: str) -> None:
         """Delete one object as cleanup, as :meth:`discard_prefixes` deletes prefixes: a failure is logged (a replaced
