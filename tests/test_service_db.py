@@ -867,6 +867,60 @@ def test_a_malformed_waiting_message_is_skipped_said_once_and_the_others_read(tm
     assert len(skipped) == 5 and all(m.endswith(": skipped") for m in skipped), skipped
 
 
+def _processes_at_once(target, n: int) -> list[str | None]:
+    """``target()`` in ``n`` forked processes released together (the API and workers starting): each one's error,
+    None where it succeeded."""
+    import multiprocessing
+
+    context = multiprocessing.get_context("fork")
+    barrier, results = context.Barrier(n), context.Queue()
+
+    def run():
+        barrier.wait()
+        try:
+            target()
+            results.put(None)
+        except Exception as exc:  # noqa: BLE001 - the racer's error is its result
+            results.put(f"{type(exc).__name__}: {exc}"[:300])
+
+    processes = [context.Process(target=run) for _ in range(n)]
+    for process in processes:
+        process.start()
+    errors = [results.get(timeout=60) for _ in processes]
+    for process in processes:
+        process.join(timeout=60)
+    return errors
+
+
+def test_processes_opening_a_fresh_sql_broker_at_once_all_open_it_in_wal_mode(tmp_path):
+    """The API and a worker open the SQL broker's new file at once on a fresh install: kombu makes its tables as each
+    first opens it, and one of two doing so at once was refused "table kombu_queue already exists" (25 of 30 trials
+    of four processes), or "database is locked" turning it to WAL. They set it up one at a time (as the metadata
+    database's migrations), the file left in WAL mode."""
+    import sqlite3
+
+    from kombu import Connection
+
+    from voxe_service.broker import register
+
+    register()
+    for trial in range(5):
+        path = tmp_path / f"broker{trial}.db"
+
+        def first_open():
+            with Connection(f"sqla+sqlite:///{path}") as conn:
+                conn.default_channel.session.close()  # (the channel's first session opens the database)
+
+        assert _processes_at_once(first_open, 4) == [None] * 4
+        connection = sqlite3.connect(path)  # (a plain connection: it asks for no mode itself)
+        try:
+            assert connection.execute("PRAGMA journal_mode").fetchone() == ("wal",)
+            assert {"kombu_queue", "kombu_message"} <= {name for (name,) in connection.execute(
+                "SELECT name FROM sqlite_master WHERE type = 'table'")}
+        finally:
+            connection.close()
+
+
 # ------------------------------------------------------------------------------------------ the connection pool
 def test_racing_first_reads_of_a_keys_webhook_secret_all_get_the_stored_one(db):
     """Requests that have each read the key without a webhook secret make it at once (GET /v1/webhooks/secret, a

@@ -30,7 +30,7 @@ from kombu.utils.encoding import bytes_to_str
 from sqlalchemy import create_engine, delete, text
 from sqlalchemy.engine import make_url
 
-from voxe_service.db import connect_timeout_args, make_engine
+from voxe_service.db import connect_timeout_args, make_engine, sqlite_setup
 
 log = logging.getLogger("voxe.broker")
 
@@ -55,11 +55,13 @@ class Channel(_sqla.Channel):
                              connect_args=connect_timeout_args(conninfo.hostname), **options)
 
     def _open(self):
-        first = self.connection.client.hostname not in self._engines
-        engine, session_factory = super()._open()
-        if first:  # the delivered messages an earlier version kept
-            with engine.begin() as conn:
-                conn.execute(delete(self.message_cls.__table__).where(self.message_cls.visible.is_(False)))
+        url = self.connection.client.hostname
+        if url in self._engines:
+            return super()._open()
+        with sqlite_setup(url):  # kombu makes its tables as it first opens the database
+            engine, session_factory = super()._open()
+        with engine.begin() as conn:  # the delivered messages an earlier version kept
+            conn.execute(delete(self.message_cls.__table__).where(self.message_cls.visible.is_(False)))
         return engine, session_factory
 
     def _get(self, queue):

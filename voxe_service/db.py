@@ -196,34 +196,38 @@ def run_migrations(database_url: str) -> None:
     Processes starting together (API replicas) upgrade one after another: PostgreSQL under an advisory lock
     (``migrations/env.py``), a SQLite file under a lock file beside it (SQLite runs DDL outside transactions).
 
-    A SQLite file is left in WAL mode (which it keeps): the migrations' connections do not ask for it, and the
-    service's connections (:func:`make_engine`) each ask at connect; on a file still in rollback mode their first
-    ones, opened together by one request's threads or by the API and a worker, each turned it to WAL, and one of
-    two both holding the file's shared lock was refused at once with "database is locked" (SQLite's deadlock rule:
-    no busy timeout is waited).
+    A SQLite file is set up under :func:`sqlite_setup` (in WAL mode before its tables are made).
     """
     from alembic import command
 
-    ensure_sqlite_dir(database_url)
-    with _sqlite_file_lock(database_url):
+    with sqlite_setup(database_url):
         command.upgrade(alembic_config(database_url), "head")
-        if sqlite_file(database_url) is not None:
-            engine = make_engine(database_url, pool_size=1, max_overflow=0)
-            with engine.connect():  # (its connect turns the file to WAL)
-                pass
-            engine.dispose()
 
 
 @contextmanager
-def _sqlite_file_lock(database_url: str) -> Iterator[None]:
-    path = sqlite_file(database_url)
+def sqlite_setup(url: str) -> Iterator[None]:
+    """Set up a SQLite file (make its tables) inside: one process at a time, under a lock file beside it, the file
+    turned to WAL mode (which it keeps) first; other databases as they are, with no lock.
+
+    The metadata database (:func:`run_migrations`) and the SQL broker's (``voxe_service.broker``), each opened at
+    once by the API and a worker on a fresh install: the service's connections (:func:`make_engine`) each ask for
+    WAL at connect, and on a file still in rollback mode one of two doing so at once was refused "database is
+    locked" (SQLite's deadlock rule: no busy timeout is waited); two making the same tables, one was refused
+    "table ... already exists" (SQLite runs DDL outside transactions).
+    """
+    path = sqlite_file(url)
     if path is None:
         yield
         return
     import fcntl
 
+    ensure_sqlite_dir(url)
     with open(f"{path}.migrate.lock", "a") as lock:
         fcntl.flock(lock, fcntl.LOCK_EX)  # released when the file closes, or its process dies
+        engine = make_engine(url, pool_size=1, max_overflow=0)
+        with engine.connect():  # (its connect turns the file to WAL)
+            pass
+        engine.dispose()
         yield
 
 
