@@ -29,6 +29,7 @@ from kombu.transport import sqlalchemy as _sqla
 from kombu.utils.encoding import bytes_to_str
 from sqlalchemy import create_engine, delete, text
 from sqlalchemy.engine import make_url
+from sqlalchemy.exc import IntegrityError
 
 from voxe_service.db import connect_timeout_args, make_engine, sqlite_setup
 
@@ -63,6 +64,15 @@ class Channel(_sqla.Channel):
         with engine.begin() as conn:  # the delivered messages an earlier version kept
             conn.execute(delete(self.message_cls.__table__).where(self.message_cls.visible.is_(False)))
         return engine, session_factory
+
+    def _get_or_create(self, queue):
+        """kombu's, but where another process made the queue's row at once (UNIQUE constraint failed: the API and a
+        worker first sending to and reading a queue) its row is read, not the error raised."""
+        try:
+            return super()._get_or_create(queue)
+        except IntegrityError:
+            self.session.rollback()
+            return super()._get_or_create(queue)
 
     def _get(self, queue):
         """kombu's, but the delivered message's row is deleted instead of kept invisible."""
