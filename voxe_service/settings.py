@@ -55,8 +55,8 @@ class Settings(BaseSettings):
     s3_endpoint_url: str | None = None
     s3_region: str | None = None
     s3_prefix: str = ""
-    # S3: how long a connect or a read waits for the endpoint, each of boto3's tries. One that accepts and never
-    # answers (hung, partitioned) had held a request 60 s a try, five tries: an upload or a download 5 min, then 503.
+    # S3: how long a connect or a read waits for the endpoint, each of a request's five tries (storage.S3_TRIES). One
+    # that accepts and never answers (hung, partitioned) had held a request 60 s a try, six tries, then 503.
     s3_timeout_s: float = Field(10.0, gt=0)
     work_dir: Path = Path("./var/work")  # per-machine scratch: upload staging, worker caches
     model_dir: Path = Path("./var/models")  # where the `tiny` smoke-test model is built, per machine

@@ -436,6 +436,11 @@ def _unless_vanished(error: OSError) -> None:
         raise error
 
 
+S3_TRIES = 5
+"""Tries of each S3 request, the first included (botocore's ``max_attempts`` counts the retries alone: 5 had made 6,
+a silent endpoint holding a request 6 times VOXE_S3_TIMEOUT_S)."""
+
+
 class S3Storage(Storage):
     """Objects in an S3-compatible bucket (AWS S3, MinIO, ...) through boto3.
 
@@ -445,7 +450,8 @@ class S3Storage(Storage):
     (:data:`S3_KEY_MAX_BYTES`); a store may limit more (SeaweedFS takes each "/"-separated
     part up to 255 bytes, as a file name, and refuses a longer one with KeyTooLongError;
     the service's own keys' parts are far shorter). ``timeout``: the seconds a connect or a read
-    waits for the endpoint, each try (the service's VOXE_S3_TIMEOUT_S; 60 is botocore's own).
+    waits for the endpoint, each of a request's :data:`S3_TRIES` tries (the service's VOXE_S3_TIMEOUT_S; 60 is
+    botocore's own); a request with a body waits 1 s more a try, botocore's wait for the endpoint's 100 Continue.
     """
 
     def __init__(self, bucket: str, endpoint_url: str | None = None, region: str | None = None,
@@ -457,7 +463,7 @@ class S3Storage(Storage):
         self.prefix = prefix.strip("/") + "/" if prefix.strip("/") else ""
         self.client = client or boto3.client(
             "s3", endpoint_url=endpoint_url, region_name=region,
-            config=Config(retries={"max_attempts": 5, "mode": "standard"}, s3={"addressing_style": "path"},
+            config=Config(retries={"total_max_attempts": S3_TRIES, "mode": "standard"}, s3={"addressing_style": "path"},
                           connect_timeout=timeout, read_timeout=timeout),
         )
         if create_bucket:
