@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from voxe_service.storage import LocalStorage, ObjectNotFound, S3Storage, StorageError, check_key
+from voxe_service.storage import PROBE_KEY, LocalStorage, ObjectNotFound, S3Storage, StorageError, check_key
 from service_helpers import free_port, moto_s3
 
 
@@ -119,7 +119,7 @@ def test_put_get_range_list_delete(storage, tmp_path):
         storage.get_file("nothing/here", tmp_path / "x")
     assert not (tmp_path / "x").exists()
     storage.check_writable()
-    assert storage.list() == []
+    assert storage.list() == [PROBE_KEY]
 
 
 def test_both_backends_agree_on_tmp_keys_and_empty_ranges(storage):
@@ -502,6 +502,23 @@ def test_put_bytes_that_fails_to_write_leaves_no_temporary_file(tmp_path, full_d
         with pytest.raises(OSError, match="No space left on device"):
             store.put_bytes("jobs/a/x.bin", b"x")
     assert list(full_disk.iterdir()) == [] and store.list() == []
+
+
+def test_readiness_probes_leave_one_object_where_deletes_are_denied_and_pass_at_once(storage, monkeypatch):
+    """Each readiness probe had written its own _probe/<uuid> and deleted it: where the delete was denied (a role
+    without s3:DeleteObject) or failed, one object a probe stayed for good. They write and read back one object,
+    probes at once (threads, replicas) all passing."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    def denied(key):
+        raise StorageError(f"AccessDenied deleting {key}")
+
+    monkeypatch.setattr(storage, "delete", denied)
+    for _ in range(3):
+        storage.check_writable()
+    with ThreadPoolExecutor(4) as pool:
+        assert list(pool.map(lambda _: storage.check_writable(), range(8))) == [None] * 8
+    assert storage.list("_probe/") == [PROBE_KEY]
 
 
 def test_local_check_writable_on_a_full_disk_is_a_storage_error(tmp_path, full_disk):

@@ -64,6 +64,8 @@ JOBS_PREFIX = "jobs/"
 """What every job's objects lie under (:func:`job_key`)."""
 RECONSTRUCTIONS_PREFIX = "reconstructions/"
 """What every reconstruction's objects lie under (:func:`reconstruction_storage_key`)."""
+PROBE_KEY = "_probe/ready"
+"""The one object the readiness probe writes and reads back (:meth:`Storage.check_writable`)."""
 
 
 def scene_key(scene_id: str, name: str = "") -> str:
@@ -198,19 +200,17 @@ class Storage(ABC):
             return False
 
     def check_writable(self) -> None:
-        """Write, read back and delete a probe object; raises StorageError when that fails."""
-        key = f"_probe/{uuid.uuid4().hex}"
+        """Write and read back :data:`PROBE_KEY`; raises StorageError when that fails.
+
+        Always that one object, kept: each probe had written its own ``_probe/<uuid>`` and deleted it, and where the
+        delete was denied or failed one object a probe stayed for good (a probe every few seconds). Probes at once
+        (threads, replicas) write the same bytes, and none deletes what another reads back."""
         try:
-            self.put_bytes(key, b"ok")
-            if b"".join(self.open_range(key)) != b"ok":
+            self.put_bytes(PROBE_KEY, b"ok")
+            if b"".join(self.open_range(PROBE_KEY)) != b"ok":
                 raise StorageError("probe object read back wrong")
         except OSError as exc:  # a local disk (or an upload's temporary file) that cannot be written or read
             raise StorageError(f"storage probe failed: {exc}") from exc
-        finally:
-            try:
-                self.delete(key)
-            except Exception:  # noqa: BLE001 - the write error, if any, is the one to report
-                pass
 
     def describe(self) -> str:
         return type(self).__name__
