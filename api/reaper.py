@@ -318,15 +318,22 @@ ORPHANS_SWEPT = ((SCENES_PREFIX, Scene, "scene"), (JOBS_PREFIX, Job, "job"),
 def reap_orphaned_uploads(settings: Settings, now: datetime | None = None) -> list[str]:
     """Delete what lies under a ``scenes/<id>/``, ``jobs/<id>/`` or ``reconstructions/<id>/`` prefix no row records,
     last written ``orphaned_upload_age_s`` ago (their unfinished S3 multipart uploads aborted: ``delete_prefix``);
-    returns the prefixes deleted (one whose delete failed stays, logged, for the next sweep). An API process killed mid-store, or between storing and recording, or a delete whose
-    storage cleanup failed after its rows went, had left them for good: every other cleanup starts from a row."""
+    returns the prefixes deleted (one whose delete failed stays, logged, for the next sweep). An API process killed
+    mid-store, or between storing and recording, or a delete whose storage cleanup failed after its rows went, had
+    left them for good: every other cleanup starts from a row.
+
+    An object lying directly under one of these folders (``jobs/notes.txt``, an S3 console's ``jobs/`` folder marker:
+    in no ``<id>/`` folder, so not the service's) is left alone: it had been named an orphan, ``jobs/notes.txt/``,
+    said deleted and kept, at every sweep."""
     storage = get_storage(settings)
     cutoff = (now or system_now()) - timedelta(seconds=settings.orphaned_upload_age_s)
     orphans = []
     for prefix, model, kind in ORPHANS_SWEPT:
         newest: dict[str, datetime] = {}
         for key, written in storage.written_at(prefix):  # (one time per row id kept, not the whole listing)
-            row_id = key.split("/")[1]
+            row_id, in_a_folder, _name = key.removeprefix(prefix).partition("/")
+            if not in_a_folder:
+                continue
             newest[row_id] = max(written, newest.get(row_id, written))
         old = [row_id for row_id, written in newest.items() if written < cutoff]
         recorded = set()

@@ -5320,6 +5320,29 @@ def test_the_reaper_deletes_a_job_or_reconstructions_objects_no_row_records_once
     assert not (storage.root / half_written).exists()
 
 
+def test_the_reapers_sweep_leaves_an_object_in_no_ids_folder_alone_and_unnamed(db, caplog):
+    """An object lying directly under jobs/ (or scenes/, reconstructions/), in no <id>/ folder, was named an orphan
+    under jobs/<name>/ at every sweep, said deleted in the log and kept. It is not the service's: left alone, unnamed;
+    an orphan beside it still goes."""
+    from api import reaper
+    from voxe_service.storage import get_storage
+
+    storage = get_storage(db)
+    old = time.time() - db.orphaned_upload_age_s - 60
+    strays = ["jobs/notes.txt", "scenes/stray.bin", "reconstructions/x"]
+    orphan = f"jobs/{uuid.uuid4().hex}/"
+    for key in (*strays, orphan + "grid.safetensors"):
+        storage.put_bytes(key, b"x")
+        os.utime(storage.path(key), (old, old))
+    with caplog.at_level(logging.WARNING, logger="voxe.reaper"):
+        for _sweep in range(2):
+            assert reaper.reap_orphaned_uploads(db) == ([orphan] if _sweep == 0 else [])
+    assert [r.getMessage() for r in caplog.records if "deleted the stored objects" in r.getMessage()] == [
+        f"reaper: deleted the stored objects under {orphan}, which no job records (a process stopped between storing "
+        "and recording them, or their cleanup failed after a delete)"]
+    assert sorted(storage.list()) == sorted(strays)
+
+
 @pytest.mark.parametrize("server", ["moto", "seaweedfs"])
 def test_the_reaper_deletes_s3_objects_and_parts_of_jobs_and_reconstructions_no_row_records(monkeypatch, request,
                                                                                           server, db):
