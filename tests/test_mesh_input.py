@@ -544,7 +544,8 @@ def test_loading_a_stored_mesh_tells_its_mesh_warnings_and_still_shows_the_other
     monkeypatch.setattr(ingest, "load_stored_mesh", load_stored_mesh)
     with warnings.catch_warnings(record=True) as shown:
         warnings.simplefilter("always")
-        mesh, told = ingest.load_stored_mesh_telling(tmp_path)
+        told = []
+        mesh = ingest.load_stored_mesh_telling(tmp_path, told)
     assert (mesh, told) == ("the mesh", ["chair.obj: the material library its mtllib names, 'chair.mtl', is not "
                                          "found beside it"])
     assert [(w.category, str(w.message)) for w in shown] == [(RuntimeWarning, "invalid value encountered in divide")]
@@ -1028,7 +1029,7 @@ def _ingest_mesh_upload(tmp_path, files, mesh_shading=None):
     with _stage(tmp_path, files, mesh_shading) as staged, zipfile.ZipFile(staged.archive) as archive:
         archive.extractall(root)
         stored = archive.namelist()
-    render_mesh(root)
+    render_mesh(root, [])
     decoded = decode(root, 8)
     assert decoded.backbone == "relu_field"  # rendered views: the object on a transparent background
     return staged, stored, root, decoded.count

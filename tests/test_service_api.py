@@ -3573,6 +3573,35 @@ def test_a_job_created_on_a_mesh_scene_once_ready_is_told_its_ingests_warnings(c
     assert warned(evaluation.json()["id"]) == []
 
 
+@BOTH_DATABASES
+@pytest.mark.parametrize("fails_in", ["the mesh", "the views"])
+def test_a_mesh_scene_whose_ingest_fails_keeps_the_warnings_said_before(client, root, monkeypatch, fails_in):
+    """A mesh scene whose ingest failed after its load had warned (an OBJ's .mtl not sent, then its triangles of no
+    area, or its rendered views refused) had kept no ``warnings``: what may explain the failure was said nowhere.
+    The failed scene keeps those said before it failed."""
+    from voxe_service import datasets
+    from worker import ingest as worker_ingest
+
+    monkeypatch.setattr(datasets, "MESH_VIEWS", 2)
+    monkeypatch.setattr(datasets, "MESH_VIEW_SIZE", 32)
+    if fails_in == "the mesh":  # its three vertices on a line
+        obj, error = ("mtllib model.mtl\nv 0 0 0\nv 1 0 0\nv 2 0 0\nusemtl red\nf 1 2 3\n",
+                      "invalid mesh: m.obj: every triangle has zero area")
+    else:
+        obj, error = "mtllib model.mtl\nv 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 0 1\nf 1 2 3\nf 1 2 4\n", "invalid dataset: views"
+
+        def refused(root, downsample):
+            raise worker_ingest.IngestError("invalid dataset: views")
+        monkeypatch.setattr(worker_ingest, "decode", refused)
+    scene = client.post("/v1/scenes", files=[("files", ("cube/m.obj", obj.encode(), "text/plain"))])
+    assert scene.status_code == 201, scene.text
+    assert ingest(scene.json()["id"]) == {"scene_id": scene.json()["id"], "state": "failed"}
+    failed = client.get(f"/v1/scenes/{scene.json()['id']}").json()
+    assert failed["state"] == "failed" and failed["error"].startswith(error), failed["error"]
+    assert failed["warnings"] == ["m.obj: the material library its mtllib names, 'model.mtl', is not found beside it; "
+                                  "the mesh loads without its materials"]
+
+
 def test_a_webhook_sender_polling_while_the_broker_refuses_a_new_job_delivers_none_of_its_warnings(root, monkeypatch):
     """A job created on a mesh scene whose ingest warned is told its warnings in the transaction that records it,
     committed before the broker is asked: a sender polling while the broker then refused (the job withdrawn, a 503)

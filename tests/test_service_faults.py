@@ -4275,11 +4275,10 @@ def test_a_superseded_mesh_ingest_leaves_the_winners_archive_as_recorded(db, tmp
             stalled.set()
             go_on.wait(10)
 
-    def render_mesh(root):  # each run's views its own (a real render's zip differs by its file times)
+    def render_mesh(root, told):  # each run's views its own (a real render's zip differs by its file times)
         stall("render")
         (root / "transforms_train.json").write_text("{}")
         (root / "r_0.png").write_text(threading.current_thread().name)
-        return []  # (loaded without nothing)
 
     package, lease = datasets.package, ingest.ingest_lease
 
@@ -4353,10 +4352,9 @@ def _mesh_scene_rendering(storage, monkeypatch, render=None) -> str:
         row = session.get(Scene, scene)
         row.format, row.storage_key, row.size_bytes, row.sha256 = "mesh", upload.key, upload.size, upload.sha256
 
-    def views(root):
+    def views(root, told):  # (loaded without nothing)
         (root / "transforms_train.json").write_text("{}")
         (root / "r_0.png").write_text("x" * 1000)
-        return []  # (loaded without nothing)
     monkeypatch.setattr(ingest, "render_mesh", render or views)
     monkeypatch.setattr(ingest, "decode", lambda root, downsample: ingest.Decoded(1, "relu_field"))
     return scene
@@ -4412,13 +4410,12 @@ def test_a_mesh_scene_deleted_while_it_renders_is_said_to_be_deleted(db, monkeyp
     settings, storage = db.model_copy(update={"stage_lease_s": 0.5}), get_storage(db)
     scene = None
 
-    def deleted_meanwhile(root):
+    def deleted_meanwhile(root, told):
         with session_scope() as session:
             session.delete(session.get(Scene, scene))
         storage.delete_prefix(scene_key(scene))  # (as the API's delete does)
         time.sleep(0.4)  # a renewal finds the row gone
         (root / "r_0.png").write_text("x")
-        return []
 
     scene = _mesh_scene_rendering(storage, monkeypatch, deleted_meanwhile)
     assert ingest.ingest_scene(scene, settings, storage, "w1@host") == {

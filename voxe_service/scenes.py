@@ -72,14 +72,15 @@ def mark_ready(session: Session, scene_id: str, where=(), **values) -> list[Job]
     return dispatch
 
 
-def fail_scene(session: Session, scene_id: str, reason: str, where=()) -> bool:
-    """processing -> failed with ``reason`` (its stored bytes no longer count: ``size_bytes`` 0); the jobs
+def fail_scene(session: Session, scene_id: str, reason: str, where=(), warnings: list[str] | None = None) -> bool:
+    """processing -> failed with ``reason`` and the ``warnings`` its ingest said before it failed (None: not known,
+    its upload never loaded); its stored bytes no longer count (``size_bytes`` 0); the jobs
     waiting on it fail naming it, and so do their reconstructions (pending: no job can ever fit them on this
     scene; they had stayed pending for good). False when the scene was not processing (or not as ``where``
     says)."""
-    now = utcnow()
+    now, said = utcnow(), {} if warnings is None else {"warnings": warnings}  # (None left SQL NULL, not JSON null)
     changed = session.execute(update(Scene).where(Scene.id == scene_id, Scene.state == PROCESSING, *where)
-                              .values(state=FAILED, error=reason, size_bytes=0, updated_at=now))
+                              .values(state=FAILED, error=reason, size_bytes=0, updated_at=now, **said))
     if changed.rowcount != 1:
         return False
     error = f"the scene's upload failed processing: {reason}"

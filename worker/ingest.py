@@ -70,30 +70,32 @@ def load_stored_mesh(dataset: Path):
     return shade_mesh(mesh, options.get("shading", "auto"))
 
 
-def load_stored_mesh_telling(dataset: Path):
-    """(:func:`load_stored_mesh`'s mesh, what it loaded without): its ``MeshWarning``s (an OBJ's .mtl not sent, which
-    had been said in the worker's log alone), files named as uploaded, without the worker's scratch path. Any other
+def load_stored_mesh_telling(dataset: Path, told: list[str]):
+    """:func:`load_stored_mesh`'s mesh; what it loaded without, its ``MeshWarning``s (an OBJ's .mtl not sent, which
+    had been said in the worker's log alone), appended to ``told``, files named as uploaded, without the worker's
+    scratch path: those said before a ``MeshError`` too (a failed ingest keeps them: they may be why). Any other
     warning is shown as it would have been (the worker's log): recorded with them, it had been dropped unsaid."""
     kept = dataset / datasets.MESH_FOLDER
-    with warnings.catch_warnings(record=True) as said:
-        warnings.simplefilter("always", MeshWarning)
-        mesh = load_stored_mesh(dataset)
-    for other in said:
-        if other.category is not MeshWarning:
-            warnings.showwarning(other.message, other.category, other.filename, other.lineno)
-    return mesh, [_as_uploaded(_relative_message(w.message, kept), kept) for w in said if w.category is MeshWarning]
+    try:
+        with warnings.catch_warnings(record=True) as said:
+            warnings.simplefilter("always", MeshWarning)
+            return load_stored_mesh(dataset)
+    finally:
+        for other in said:
+            if other.category is not MeshWarning:
+                warnings.showwarning(other.message, other.category, other.filename, other.lineno)
+        told.extend(_as_uploaded(_relative_message(w.message, kept), kept) for w in said if w.category is MeshWarning)
 
 
-def render_mesh(root: Path) -> list[str]:
+def render_mesh(root: Path, told: list[str]) -> None:
     """Render the mesh kept in ``root/mesh/`` into a NeRF-synthetic dataset in ``root`` (mesh input route (a)); what
-    it loaded without (:func:`load_stored_mesh_telling`)."""
+    it loaded without appended to ``told`` (:func:`load_stored_mesh_telling`)."""
     kept = root / datasets.MESH_FOLDER
     try:
-        mesh, loaded_without = load_stored_mesh_telling(root)
+        mesh = load_stored_mesh_telling(root, told)
     except MeshError as exc:  # named as uploaded, without the worker's scratch path (Pillow's messages carry it)
         raise IngestError(f"invalid mesh: {_as_uploaded(_relative_message(exc, kept), kept)}") from None
     write_mesh_dataset(mesh, root, datasets.MESH_VIEWS, datasets.MESH_VIEW_SIZE)
-    return loaded_without
 
 
 def _as_uploaded(message: str, kept: Path) -> str:
@@ -243,15 +245,16 @@ def _ingest(scene_id: str, token: str, upload: StoredObject, interrupted: int, s
     if removed := sweep_unlocked(work, f"{scene_id}-*"):
         log.info("scene %s: removed %d folder(s) its killed ingests left", scene_id, removed)
     values: dict = {}
-    loaded_without: list[str] = []
+    loaded_without: list[str] | None = None  # (None: the upload never loaded, what it loads without not known)
     with locked_folder(work, f"{scene_id}-") as scratch:
         try:
             archive = fetch(storage, upload, scratch / "archive.zip", f"scene {scene_id}'s upload {upload.key}")
             _still_held(lease)
             root = datasets.unpack(archive, scratch / "data")
+            loaded_without = []
             if mesh_upload:
                 _still_held(lease)
-                loaded_without = render_mesh(root)
+                render_mesh(root, loaded_without)
             _still_held(lease)
             count, values["backbone"] = decode(root, settings.validation_downsample)
             if mesh_upload:  # the rendered dataset (and the mesh beside it) becomes the scene's archive
@@ -271,7 +274,7 @@ def _ingest(scene_id: str, token: str, upload: StoredObject, interrupted: int, s
             reason = str(exc) if isinstance(exc, IngestError) else f"ingest: {failure_text(exc)}"
             if not isinstance(exc, IngestError):
                 log.exception("scene %s: ingest failed", scene_id)
-            _fail(scene_id, token, reason, storage)
+            _fail(scene_id, token, reason, storage, loaded_without)
             return {"scene_id": scene_id, "state": "failed"}
     return _ready(scene_id, token, values, storage, settings, upload.key if mesh_upload else None, loaded_without)
 
@@ -314,11 +317,12 @@ def _give_back(scene_id: str, token: str, uncount: bool = False, stopped_by: str
         log.warning("scene %s: could not give back the ingest's hold", scene_id, exc_info=True)
 
 
-def _fail(scene_id: str, token: str, reason: str, storage: Storage) -> bool:
-    """Fail the processing scene this run (``token``) holds and discard its stored bytes; False (nothing discarded)
-    when it was no longer processing, or no longer held by this run."""
+def _fail(scene_id: str, token: str, reason: str, storage: Storage, warnings_said: list[str] | None = None) -> bool:
+    """Fail the processing scene this run (``token``) holds and discard its stored bytes, keeping ``warnings_said``
+    (what its load said before the failure) as its ``warnings``; False (nothing discarded) when it was no longer
+    processing, or no longer held by this run."""
     with session_scope() as session:
-        failed = fail_scene(session, scene_id, reason, where=[Scene.ingest_token == token])
+        failed = fail_scene(session, scene_id, reason, where=[Scene.ingest_token == token], warnings=warnings_said)
     if failed:  # its bytes are of no use to any job: free the key's upload quota
         storage.discard_prefixes(scene_key(scene_id))
         log.warning("scene %s failed: %s", scene_id, reason)
@@ -349,7 +353,7 @@ def _ready(scene_id: str, token: str, values: dict, storage: Storage, settings: 
                 except QueueUnavailable:  # left queued with no task id: the reaper sends it once the broker is back
                     log.warning("scene %s: could not dispatch job %s", scene_id, job.id)
     if over:
-        if not _fail(scene_id, token, over, storage):
+        if not _fail(scene_id, token, over, storage, list(warnings_said)):
             _discard_refused(scene_id, values.get("storage_key"), storage)
         return {"scene_id": scene_id, "state": "failed"}
     if waiting is None:

@@ -527,9 +527,9 @@ def _voxelize(job: Job, rec, settings, storage):
     a scene ingested before they were kept (migration 0022) tells none."""
     from voxe_core.mesh_input import VoxelizeConfig, voxelize
 
-    scene = job_scene(job)
+    scene, loaded_without = job_scene(job), []
     with runtime.scene_dataset(scene, settings, storage) as dataset:
-        mesh, loaded_without = load_stored_mesh_telling(dataset)
+        mesh = load_stored_mesh_telling(dataset, loaded_without)
     for text in loaded_without:
         if text not in (scene.warnings or ()):
             runtime.record_warning(job.id, "reconstruct", text)
