@@ -3602,6 +3602,25 @@ def test_a_mesh_scene_whose_ingest_fails_keeps_the_warnings_said_before(client, 
                                   "the mesh loads without its materials"]
 
 
+def test_a_scene_processed_before_its_warnings_were_kept_says_null_as_the_readme_says(client, root, monkeypatch):
+    """A scene ingested before migration 0022 kept no warnings (its column NULL): the API shows null, not [] (none
+    said), and the README's scenes row, which had said "null until it is ready", now says what null means there."""
+    from sqlalchemy import update
+
+    from voxe_service.db import session_scope
+    from voxe_service.models import Scene
+
+    scene = _upload_an_obj_naming_an_mtl_not_sent(client, monkeypatch)
+    assert ingest(scene["id"])["state"] == "ready"
+    with session_scope() as session:
+        session.execute(update(Scene).where(Scene.id == scene["id"]).values(warnings=None))
+    assert client.get(f"/v1/scenes/{scene['id']}").json()["warnings"] is None
+    assert client.get("/v1/scenes").json()["items"][0]["warnings"] is None
+    row = next(line for line in (Path(__file__).parent.parent / "README.md").read_text().splitlines()
+               if line.startswith("| `GET /v1/scenes`"))
+    assert "null while it is processing and for a scene processed before they were kept (migration 0022: not known" in row
+
+
 def test_a_webhook_sender_polling_while_the_broker_refuses_a_new_job_delivers_none_of_its_warnings(root, monkeypatch):
     """A job created on a mesh scene whose ingest warned is told its warnings in the transaction that records it,
     committed before the broker is asked: a sender polling while the broker then refused (the job withdrawn, a 503)
