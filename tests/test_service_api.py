@@ -2734,6 +2734,30 @@ def test_the_voxelize_route_tells_its_job_what_the_mesh_loads_without_unless_the
     assert voxelized(16) == [("reconstruct", said)]
 
 
+def test_a_ply_texture_unread_is_told_to_a_job_once_in_the_same_words_at_each_load(client, root, monkeypatch):
+    """A PLY whose TextureFile names a file of its folder that is no image: Pillow named the bytes trimesh handed it
+    by their memory address ("cannot identify image file <_io.BytesIO object at 0x7f...>"), a new one at each load,
+    so the voxelize route's reload said a warning the scene's kept warnings did not hold, and the job was told it
+    twice (stage ingest, then reconstruct). It is said without the address, the same at every load, and told once."""
+    from voxe_service import datasets
+    from worker import tasks
+
+    monkeypatch.setattr(datasets, "MESH_VIEWS", 2)
+    monkeypatch.setattr(datasets, "MESH_VIEW_SIZE", 32)
+    ply = _square_ply("texcoord").replace(b"TextureFile old.png", b"TextureFile options.json")
+    scene = client.post("/v1/scenes", files=[("files", ("square.ply", ply))])
+    assert scene.status_code == 201, scene.text
+    assert ingest(scene.json()["id"])["state"] == "ready"
+    said = ("square.ply: the texture its header names (TextureFile) cannot be read (UnidentifiedImageError: cannot "
+            "identify image file); the mesh loads without it")
+    assert client.get(f"/v1/scenes/{scene.json()['id']}").json()["warnings"] == [said]
+    job = client.post("/v1/jobs", json={"scene_id": scene.json()["id"], "prompt": "a square", "mode": "global",
+                                        "params": {"reconstruction": {"resolution": 16}}}).json()
+    assert tasks.reconstruct_task.apply(args=(job["id"],)).get()["state"] == "done"
+    events = client.get(f"/v1/jobs/{job['id']}/events").json()
+    assert [(e["stage"], e["detail"]) for e in events if e["kind"] == "warning"] == [("ingest", said)]
+
+
 def test_a_mesh_scene_archive_keeps_the_uploaded_mesh(client, root, monkeypatch):
     from voxe_service.db import session_scope
     from voxe_service.models import Scene

@@ -209,9 +209,10 @@ def load_mesh(
     if library.missing is not None:  # trimesh drops it without a word, the mesh grey
         warnings.warn(f"{path.name}: the material library its mtllib names, {library.missing!r}, is not found beside "
                       "it; the mesh loads without its materials", MeshWarning, stacklevel=2)
-    if unread_texture.error is not None:
+    if unread_texture.error is not None:  # (Pillow names the bytes trimesh hands it by an address, new at each load)
+        error = re.sub(r" ?<_io\.BytesIO object at 0x[0-9a-fA-F]+>", "", str(unread_texture.error))
         warnings.warn(f"{path.name}: the texture its header names (TextureFile) cannot be read "
-                      f"({type(unread_texture.error).__name__}: {unread_texture.error}); the mesh loads without it",
+                      f"({type(unread_texture.error).__name__}: {error}); the mesh loads without it",
                       MeshWarning, stacklevel=2)
     if texture is None:
         vertices = np.asarray(getattr(loaded, "vertices", np.empty((0, 3))), dtype=np.float64)
