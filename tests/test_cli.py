@@ -282,6 +282,31 @@ def test_a_help_on_a_stdout_that_cannot_encode_it_is_printed_escaped(monkeypatch
     assert ascii_out.errors == "strict"
 
 
+def test_a_c_locales_stdout_escapes_what_it_cannot_encode_and_keeps_undecoded_bytes(monkeypatch, capsys):
+    """A C locale's stdout (ASCII, its handler surrogateescape: Python's UTF-8 mode off) had been left as it was: a
+    sweep's table naming "a café ☕" raised "'ascii' codec can't encode character" (exit 2, the sweep done), a help
+    naming λ a traceback. Now escaped, while a byte the locale could not decode (a file name's) is written back."""
+    import io
+
+    import voxe_core.cli.service as service
+
+    sweeps = FakeSweeps(["succeeded"], {"succeeded": 12})
+    table = "a café ☕ " + b"\xc3\xa9\n".decode("ascii", "surrogateescape")
+    monkeypatch.setattr(sweeps, "get_sweep", lambda sweep_id: {"id": sweep_id, "entries": [], "state": "succeeded",
+                                                                 "counts": {"succeeded": 12}, "table": table})
+    monkeypatch.setattr(service, "_client", lambda args: sweeps)
+    c_locales = io.TextIOWrapper(io.BytesIO(), encoding="ascii", errors="surrogateescape")
+    monkeypatch.setattr(sys, "stdout", c_locales)
+    assert main(["sweep", "--scene", "s1=mic", "--wait", "--poll", "0.01", "-q"]) == 0
+    with pytest.raises(SystemExit) as done:
+        main(["refine", "--help"])
+    assert done.value.code == 0
+    c_locales.flush()
+    written = c_locales.buffer.getvalue()
+    assert written.startswith(b"a caf\\xe9 \\u2615 \xc3\xa9\nusage: voxe refine") and b"\\u03bb" in written
+    assert c_locales.errors == "surrogateescape" and "error" not in capsys.readouterr().err
+
+
 @pytest.mark.parametrize("end, code", [("succeeded", 0), ("failed", 1), ("canceled", 1)])
 def test_a_waited_sweep_exits_1_unless_it_succeeded(monkeypatch, capsys, tmp_path, end, code):
     """As voxe wait does for a job: a failed sweep had exited 0, saying nothing of its failed jobs."""

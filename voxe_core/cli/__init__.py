@@ -28,6 +28,7 @@ output whose reader stopped reading (``voxe status J | head``) ends the command 
 from __future__ import annotations
 
 import argparse
+import codecs
 import contextlib
 import errno
 import os
@@ -49,6 +50,8 @@ OUT_OF_MEMORY_SAYINGS = ("can't allocate memory", "Tried to allocate", "out of m
                          "Storage size calculation overflowed")
 """How torch's RuntimeErrors say a tensor asked for is past the machine's memory; the last, past what a byte count
 holds (``export-mesh --resolution 3000000``: it had been a traceback, exit 1)."""
+STDOUT_ERRORS = "voxe.escape_unless_undecoded"
+"""The name of the error handler stdout writes what its encoding lacks with (:func:`_escaped_unless_undecoded`)."""
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -81,16 +84,32 @@ def _stdout_escaping_what_it_cannot_encode() -> Iterator[None]:
     """stdout writing a character its encoding lacks as a backslash escape, as Python's stderr does: a table naming
     "a café ☕" on a Latin-1 or ASCII stdout had raised UnicodeEncodeError once the work was done (``voxe sweep
     --wait``'s table: "error: 'latin-1' codec can't encode character", exit 2 for a sweep that succeeded), and a
-    help naming λ or → (``voxe refine --help``) with a traceback, exit 1."""
+    help naming λ or → (``voxe refine --help``) with a traceback, exit 1. A C locale's stdout (its handler
+    surrogateescape, not strict: Python's UTF-8 mode off) had been left as it was, and raised the same."""
     stdout = sys.stdout
-    if getattr(stdout, "errors", None) != "strict" or not hasattr(stdout, "reconfigure"):
+    errors = getattr(stdout, "errors", None)
+    if errors not in ("strict", "surrogateescape") or not hasattr(stdout, "reconfigure"):
         yield
         return
-    stdout.reconfigure(errors="backslashreplace")
+    stdout.reconfigure(errors=STDOUT_ERRORS)
     try:
         yield
     finally:
-        stdout.reconfigure(errors="strict")
+        stdout.reconfigure(errors=errors)
+
+
+def _escaped_unless_undecoded(error: UnicodeError) -> tuple[str | bytes, int]:
+    """A character stdout's encoding lacks as its backslash escape ("\\xe9"), one that stands for a byte the locale
+    could not decode (surrogateescape's, in a file name from argv) as that byte, as a C locale's stdout writes it."""
+    if not isinstance(error, UnicodeEncodeError):
+        raise error
+    char = error.object[error.start]
+    if "\udc80" <= char <= "\udcff":
+        return bytes([ord(char) - 0xDC00]), error.start + 1
+    return char.encode("ascii", "backslashreplace").decode("ascii"), error.start + 1
+
+
+codecs.register_error(STDOUT_ERRORS, _escaped_unless_undecoded)
 
 
 def _run(args: argparse.Namespace) -> int:
