@@ -2121,6 +2121,25 @@ def test_export_mesh_ply_glb_and_obj(sphere_grid, sphere_file, tmp_path, capsys)
     assert (tmp_path / "m.mtl").is_file()
 
 
+def under_an_ascii_locale(command: list, timeout: float = 300) -> subprocess.CompletedProcess:
+    """``command`` run where the locale's encoding is ASCII: LC_ALL=C with Python's UTF-8 mode and locale coercion
+    off (C's own turn them on), as a non-UTF-8 locale (Latin-1's lacks "–" and "☕" too) writes text files."""
+    env = {key: value for key, value in os.environ.items() if key != "PYTHONIOENCODING"}
+    env.update(LC_ALL="C", LANG="C", PYTHONUTF8="0", PYTHONCOERCECLOCALE="0")
+    return subprocess.run(command, cwd=REPO, env=env, capture_output=True, timeout=timeout)
+
+
+def test_an_obj_names_its_material_library_by_its_files_name_under_an_ascii_locale(sphere_file, tmp_path):
+    """``voxe export-mesh --out café.obj`` under an ASCII locale had failed (exit 2, "'ascii' codec can't encode
+    characters"): the OBJ names its .mtl in the bytes the file system names it by."""
+    out = os.fsencode(tmp_path) + "/café.obj".encode()
+    result = under_an_ascii_locale([sys.executable, "-m", "voxe_core.cli", "export-mesh", str(sphere_file),
+                                    "--out", out])
+    assert result.returncode == 0, result.stderr
+    assert b"mtllib caf\xc3\xa9.mtl\n" in Path(os.fsdecode(out)).read_bytes()
+    assert (tmp_path / "café.mtl").is_file()
+
+
 def test_export_mesh_obj_refuses_a_material_library_it_cannot_write_before_making_the_mesh(sphere_file, tmp_path,
                                                                                           capsys, monkeypatch):
     """A folder in the way of the .mtl beside --out m.obj had been found only as the mesh was saved, after the marching
@@ -2543,6 +2562,22 @@ def test_a_text_writing_out_clips_special_tokens_is_refused_before_anything_is_r
     err = capsys.readouterr().err
     assert f"{what} contains '<|" in err and "which the model reads as the start or end of its text" in err
     assert "no_grid" not in err.replace(what, "") and list(tmp_path.iterdir()) == []
+
+
+def test_an_evaluation_md_is_utf8_under_an_ascii_locale(sphere_file, tmp_path):
+    """evaluation.md had been written in the locale's encoding: under an ASCII (or Latin-1) one the evaluation failed
+    once done ("'ascii' codec can't encode character '\\u2013'", the table's "–", exit 2), whatever the prompts."""
+    from voxe_core.tiny_eval import build_tiny_clip
+
+    out = tmp_path / "eval"
+    argv = ["evaluate", str(sphere_file), "--object", "ball", "--out", str(out), "--size", "16", "--views", "2", "-q",
+            "--clip-model", str(build_tiny_clip(tmp_path / "clip")), "--edit", str(sphere_file), "a café ☕"]
+    result = under_an_ascii_locale([sys.executable, "-c", f"import sys; from voxe_core.cli import main; "
+                                                          f"sys.exit(main({ascii(argv)}))"])
+    assert result.returncode == 0, result.stderr
+    table = (out / "evaluation.md").read_bytes().decode("utf-8")
+    assert "a café ☕" in table and "–" in table
+    assert json.loads((out / "evaluation.json").read_bytes())["object"] == "ball"
 
 
 def test_evaluate_into_an_earlier_output_leaves_no_stale_ring_renders(sphere_file, tmp_path):

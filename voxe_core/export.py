@@ -707,10 +707,13 @@ def save_obj(mesh, path: str | os.PathLike) -> Path:
     mtl = Path(os.path.realpath(path)).with_suffix(".mtl")
     kd = rgb.mean(0) if len(rgb) else np.full(3, 0.8)
     # Both or neither: the MTL replaced first, the OBJ naming it only once that has been (the other way round, an
-    # MTL that could not be written, a folder of its name, had left a new OBJ over the earlier one)
-    with replacing(path) as partial, replacing(mtl) as mtl_partial, open(partial, "w") as out:
+    # MTL that could not be written, a folder of its name, had left a new OBJ over the earlier one). The OBJ's one
+    # text that may not be ASCII is the library's file name: written in the bytes the file system names it by (the
+    # locale's encoding had refused `--out café.obj` under an ASCII locale)
+    with (replacing(path) as partial, replacing(mtl) as mtl_partial,
+          open(partial, "w", encoding=sys.getfilesystemencoding(), errors=sys.getfilesystemencodeerrors()) as out):
         mtl_partial.write_text(f"newmtl voxe\nKd {kd[0]:.6f} {kd[1]:.6f} {kd[2]:.6f}\nKa 0 0 0\nKs 0 0 0\nd 1\n"
-                               "illum 1\n")
+                               "illum 1\n", encoding="utf-8")
         out.write(f"# Vox-E mesh: {len(vertices)} vertices, {len(faces)} faces\nmtllib {mtl.name}\nusemtl voxe\n")
         # Positions to 9 significant digits (float32's, as PLY and GLB hold them) at any scale: 6 decimals had
         # moved a mesh in a 1e-5 box by 5 % of its size. Colours in [0, 1]: 6 decimals are exact for 8 bits.

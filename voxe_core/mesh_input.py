@@ -1090,7 +1090,7 @@ def write_mesh_dataset(
             save_png(folder / split / f"r_{i:03d}.png", torch.cat([colour.clamp(0, 1), alpha[..., None]], -1))
             frames.append({"file_path": f"./{split}/r_{i:03d}", "transform_matrix": cameras.c2w[i].tolist()})
         meta = {"camera_angle_x": NERF_SYNTHETIC_FOV_X, "frames": frames}
-        (folder / f"transforms_{split}.json").write_text(json.dumps(meta, indent=1))
+        (folder / f"transforms_{split}.json").write_text(json.dumps(meta, indent=1), encoding="utf-8")
     return folder
 
 

@@ -150,7 +150,7 @@ def run_evaluation(job: Job, settings: Settings, device: str, storage) -> None:
                "fid_model": params["fid_model"], "reconstruction_id": rec.id,
                "ring": {"views": config.views, "elevation": config.elevation, "size": config.size}, "table": table}
     (scratch / "evaluation.json").write_text(json.dumps(summary, indent=2))
-    (scratch / "evaluation.md").write_text(table)
+    (scratch / "evaluation.md").write_text(table, encoding="utf-8")
     # One set: a storage failing part way had left a failed job listing some rings, or the JSON without its table
     published = [artifact for ring in rings.values() for artifact in ring]
     runtime.publish_artifacts(job.id, [*published, *((name, scratch / name, "evaluation")

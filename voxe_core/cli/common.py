@@ -470,7 +470,7 @@ def staging_folder(out: Path, command: str) -> Iterator[Path]:
         raise OSError(f"{staging} is not a staging folder voxe {command} made (it has no {STAGING_MARKER} file), "
                       "and voxe would empty it: move it away, or choose another --out")
     try:
-        marker.write_text(f"voxe {command}'s staging folder: emptied by its next run\n")
+        marker.write_text(f"voxe {command}'s staging folder: emptied by its next run\n", encoding="utf-8")
         for leftover in staging.iterdir():  # a killed run's
             if leftover != marker:
                 shutil.rmtree(leftover) if leftover.is_dir() and not leftover.is_symlink() else leftover.unlink()

@@ -114,7 +114,7 @@ def cmd_evaluate(args) -> int:
         # Written whole into the staging first: a full disk there leaves --out as it was (it had left the
         # earlier run's summaries torn, then none beside this run's ring renders)
         write_json(staging / "evaluation.json", summary)
-        (staging / "evaluation.md").write_text(table)
+        (staging / "evaluation.md").write_text(table, encoding="utf-8")  # (its "–", its prompts: whatever the locale)
         move_staged(staging, out, ("evaluation.md", "evaluation.json"), lambda: clear_ring_renders(out / "ring"))
     print(table, end="")
     return 0

@@ -149,7 +149,7 @@ def _replace_manifest(out_dir: Path, files: list[str]) -> None:
     beside them; files no run listed (the user's own, whatever their names) stay."""
     manifest = out_dir / MANIFEST_FILE
     try:
-        listed = json.loads(manifest.read_text())
+        listed = json.loads(manifest.read_text(encoding="utf-8"))
         earlier = listed["files"] if listed.get("written_by") == "voxe render" else []  # (a file of the user's own)
     except (OSError, ValueError, KeyError, TypeError, AttributeError):  # none, or not this command's: none removed
         earlier = []
