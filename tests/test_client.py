@@ -203,6 +203,23 @@ def test_an_ipv6_service_url_written_wrong_is_refused_naming_the_option_and_the_
     Client("http://[::1]:8000/voxe/").close()
 
 
+def test_an_ipv6_service_url_with_text_after_its_bracket_is_refused_naming_that_text(capsys):
+    """``--api 'http://[::1]x'`` had been refused as httpx's "Invalid port: 'x'" (of ``http://[::1]x:8000``: "Invalid
+    port: 'x:8000'"): no port was written; what follows the ']' is named, a password in the URL not quoted."""
+    from voxe_core.cli import main
+
+    for url, shown, after in (("http://[::1]x", "http://[::1]x", "x"),
+                              ("http://user:secret@[::1]x:8000/v1", "http://***@[::1]x:8000/v1", "x:8000"),
+                              ("https://[::1]]", "https://[::1]]", "]")):
+        message = (f"{shown!r} is not a service URL: its IPv6 address's ']' is followed by {after!r}, where only a "
+                   ":port may be, as http://[::1]:8000")
+        with pytest.raises(ValueError, match=f"^{re.escape(message)}$"):
+            Client(url)
+        assert main(["status", "j1", "--api", url]) == 2
+        assert capsys.readouterr().err == f"voxe status: error: --api: {message}\n"
+    Client("http://[::1]/voxe").close()
+
+
 def test_a_service_url_whose_port_is_past_65535_or_0_is_refused_not_another_ports_service_asked(capsys):
     """httpx takes any port number and the socket connects to it modulo 65536: ``--api http://127.0.0.1:99999`` had
     asked (with the API key) whatever listens on port 34463, and port 0 failed as a service not reached (exit 3, try

@@ -218,6 +218,9 @@ class Client:
         if host.startswith("[") and "]" not in host:  # httpx had said "Invalid port: ':1'" of http://[::1
             raise NotAServiceURL(f"{shown!r} is not a service URL: its IPv6 address's '[' has no closing ']', as "
                                  "http://[::1]:8000")
+        if host.startswith("[") and (after := host.partition("]")[2]) and not after.startswith(":"):  # (http://[::1]x:
+            raise NotAServiceURL(f"{shown!r} is not a service URL: its IPv6 address's ']' is followed by {after!r}, "
+                                 "where only a :port may be, as http://[::1]:8000")  # "Invalid port: 'x'")
         if host.count(":") > 1 and not host.startswith("["):  # (http://::1: "Invalid port: ':1'" too)
             raise NotAServiceURL(f"{shown!r} is not a service URL: an IPv6 address is written in [ ], as "
                                  "http://[::1]:8000")
