@@ -523,6 +523,36 @@ def test_a_folder_without_model_index_is_present_as_it_is_loaded(tiny_path, tmp_
     assert not diffusers_model_present(str(folder))
 
 
+@pytest.mark.parametrize("revision", [None, "v2"])
+def test_a_cached_snapshot_missing_a_part_is_told_which_before_loading_as_a_folder_is(tiny_path, tmp_path,
+                                                                                      monkeypatch, revision):
+    """A hub id whose cached snapshot lacks unet/ (a download cut short), loaded offline, had been told by diffusers
+    "owner/sd does not appear to have a file named config.json", naming no part, where a local folder's are named
+    before loading: the snapshot gets the same check, its download advised at the revision loaded."""
+    from huggingface_hub import constants
+
+    from diffusers import UNet2DConditionModel
+
+    from voxe_core.guidance.loading import diffusers_model_present, load_stable_diffusion
+
+    monkeypatch.setattr(constants, "HF_HUB_CACHE", str(tmp_path / "cache"))
+    repo = tmp_path / "cache" / "models--owner--sd"
+    (repo / "refs").mkdir(parents=True)
+    (repo / "refs" / (revision or "main")).write_text("abc123")
+    snapshot = repo / "snapshots" / "abc123"
+    shutil.copytree(tiny_path, snapshot)
+    shutil.rmtree(snapshot / "unet")
+    (snapshot / "vae" / "diffusion_pytorch_model.safetensors").unlink()
+    monkeypatch.setattr(UNet2DConditionModel, "from_pretrained", lambda *a, **k: pytest.fail("loading was tried"))
+    with pytest.raises(ModelNotAvailableError) as missing:
+        load_stable_diffusion("owner/sd", torch.float32, local_files_only=True, revision=revision)
+    download = "hf download owner/sd" + (" --revision v2" if revision else "")
+    assert f"not available offline: download them once with `huggingface-cli {download[3:]}`" in str(missing.value)
+    assert str(missing.value).endswith(f"Underlying error: FileNotFoundError: its snapshot in the cache ({snapshot}) "
+                                       "lacks unet/config.json, weights in unet/, weights in vae/")
+    assert not diffusers_model_present("owner/sd", revision)
+
+
 def test_a_cached_model_whose_weights_cannot_be_read_is_told_to_be_fetched_again(tiny_path, tmp_path, monkeypatch):
     """A hub id whose files are all in the cache, one of them damaged (the UNet's weights cut short: diffusers'
     "Unable to load weights from checkpoint file"), had been told "could not be fetched from the Hugging Face hub:

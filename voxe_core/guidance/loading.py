@@ -163,11 +163,17 @@ def diffusers_model_present(model: str, revision: str | None = None) -> bool:
     The parts are :func:`missing_parts`', those loading reads: a folder without ``model_index.json`` had been
     reported missing by the workers while the CLI loaded it.
     """
-    config = model_file(model, "unet/config.json", revision)
-    if config is None:
-        return False
-    # the local folder, or the cached snapshot of the hub's revision
-    return not missing_parts(os.path.dirname(os.path.dirname(config)))
+    folder = model_folder(model, revision)
+    return folder is not None and not missing_parts(folder)
+
+
+def model_folder(model: str, revision: str | None = None) -> str | None:
+    """The folder of the diffusers-layout ``model`` on this machine: the local folder, or the cached snapshot of the
+    hub's ``revision``, where it holds a file of :data:`DIFFUSERS_FILES`; None otherwise."""
+    for name in DIFFUSERS_FILES:
+        if (path := model_file(model, name, revision)) is not None:
+            return path[:-len(name) - 1]  # (the file's path is the folder's joined with its name)
+    return None
 
 
 def missing_parts(folder: str) -> list[str]:
@@ -423,6 +429,12 @@ def load_stable_diffusion(model: str, dtype, local_files_only: bool | None = Non
     if folder is not None and (missing := missing_parts(folder)):
         raise ModelNotAvailableError(not_available_message(model, FileNotFoundError(
             f"the folder lacks {', '.join(missing)}")))
+    # A hub id's cached snapshot too, where nothing will be fetched: one without unet/ had been told "owner/sd does
+    # not appear to have a file named config.json", naming no part
+    if (folder is None and local_files_only and (snapshot := model_folder(model, revision)) is not None
+            and (missing := missing_parts(snapshot))):
+        raise ModelNotAvailableError(not_available_message(model, FileNotFoundError(
+            f"its snapshot in the cache ({snapshot}) lacks {', '.join(missing)}"), revision=revision))
     source = model if folder is None else folder
     fault = component_config_fault(model, revision)
     if fault is not None:
