@@ -1613,6 +1613,44 @@ def test_a_tiny_model_is_built_into_a_mount_point_in_place(tmp_path, monkeypatch
     assert sorted(p.name for p in tmp_path.iterdir()) == ["volume"]
 
 
+def test_a_tiny_model_build_failing_in_a_mount_point_leaves_it_as_it_was(tmp_path, monkeypatch):
+    """Into a mount point the model was written in place: a rebuild failing as it saved the text encoder (a full disk,
+    Ctrl-C) left the new UNet and VAE beside the earlier text encoder, a mix that loaded as a whole model, and a first
+    build failing so left a half model the next build refused ("already holds tokenizer, unet, vae, not a tiny
+    model"). It is built in a hidden folder inside the mount point, whose parts take the earlier ones' places."""
+    from transformers import CLIPTextModel
+
+    from voxe_core import tiny_sd
+
+    volume, fresh = tmp_path / "volume", tmp_path / "fresh"
+    monkeypatch.setattr(tiny_sd.os.path, "ismount", lambda path: Path(path) in (volume, fresh))
+    tiny_sd.build_tiny_stable_diffusion(volume, seed=1)
+
+    def files(folder: Path) -> dict:
+        return {str(p.relative_to(folder)): p.read_bytes() for p in folder.rglob("*") if p.is_file()}
+
+    before = files(volume)
+    fresh.mkdir()
+    dead = fresh / ".build.0badc0de.partial"  # a build killed in it
+    (dead / "unet").mkdir(parents=True)
+
+    def disk_full(self, *args, **kwargs):
+        raise OSError(28, "No space left on device")
+
+    with monkeypatch.context() as failing:
+        failing.setattr(CLIPTextModel, "save_pretrained", disk_full)
+        for folder in (volume, fresh):
+            with pytest.raises(OSError, match="No space left"):
+                tiny_sd.build_tiny_stable_diffusion(folder, seed=2)
+    assert files(volume) == before
+    assert sorted(p.name for p in volume.iterdir()) == sorted({name.split("/")[0] for name in before})
+    assert list(fresh.iterdir()) == []  # (the killed build's folder removed, the failed one's own too)
+    assert tiny_sd.build_tiny_stable_diffusion(fresh, seed=2) == fresh
+    assert tiny_sd.build_tiny_stable_diffusion(volume, seed=2) == volume
+    assert files(volume) == files(fresh) != before
+    assert not [p for folder in (volume, fresh) for p in folder.iterdir() if p.name.endswith(".partial")]
+
+
 def test_build_tiny_model_takes_a_folder_holding_only_a_file_managers_files(tmp_path, capsys):
     """A folder made in Finder (holding only .DS_Store) had been refused as holding another model's files; a folder
     holding another hidden file (a .git) is still refused: building would replace it."""

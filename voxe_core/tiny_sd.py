@@ -181,26 +181,28 @@ def build_tiny_stable_diffusion(path, seed: int = 0) -> Path:
     the user's real weights. The model is built in a hidden folder beside ``path`` and then takes its place
     (:func:`_put_in_place`): a build killed or failing part way had left a half-rewritten model, earlier weights
     beside new ones, that loaded as a whole one (or, on a first build, a folder the next build refused). A ``path``
-    no rename can replace (a mount point: a container's volume; a folder in one not writable) is written in place.
+    no rename can replace (a mount point: a container's volume; a folder in one not writable) is built in a hidden
+    folder inside it, whose parts then replace the earlier ones (:func:`_move_in`): written in place, a build failing
+    there had left the same mix, or a half model the next build refused.
     """
     root = Path(path)
     root.mkdir(parents=True, exist_ok=True)
     if not _tiny_model(root) and (held := sorted(entry.name for entry in root.iterdir()
-                                                 if entry.name not in FOLDER_METADATA_FILES)):
+                                                 if entry.name not in FOLDER_METADATA_FILES
+                                                 and not INNER_BUILD.fullmatch(entry.name))):
         raise FileExistsError(f"{root} already holds {', '.join(held[:5])}{', ...' if len(held) > 5 else ''}, not a "
                               "tiny model: the tiny model's files would be mixed with those; give an empty or new "
                               "folder")
-    if os.path.ismount(root) or not os.access(Path(os.path.abspath(root)).parent, os.W_OK):
-        _write_tiny_stable_diffusion(root, seed)  # (a mount point, as a container's volume, is renamed by none, nor a
-        return root  # folder in one this process cannot write: written in place, as before)
-    staging = partial_path(Path(os.path.abspath(root)), secrets.token_hex(4))
+    # (a mount point, as a container's volume, is renamed by none, nor a folder in one this process cannot write)
+    inside = os.path.ismount(root) or not os.access(Path(os.path.abspath(root)).parent, os.W_OK)
+    staging = partial_path(root / "build" if inside else Path(os.path.abspath(root)), secrets.token_hex(4))
     staging.mkdir()
     held = os.open(staging, os.O_RDONLY)
     try:
         if locked(held):  # (held while it builds: a build killed since is told from a live one)
             _remove_dead_builds(staging)
         _write_tiny_stable_diffusion(staging, seed)
-        _put_in_place(staging, root)
+        _move_in(staging, root) if inside else _put_in_place(staging, root)
     finally:
         shutil.rmtree(staging, ignore_errors=True)
         os.close(held)
@@ -226,6 +228,9 @@ def _remove_dead_builds(staging: Path) -> None:
                         os.close(fd)
 
 
+INNER_BUILD = re.compile(r"\.build\.[0-9a-f]{8}\.partial")
+"""The name of the hidden folder a build into a mount point writes inside it (one a killed build left is no file of
+the user's: the folder stays buildable into)."""
 FOLDER_METADATA_FILES = frozenset({".DS_Store", "Thumbs.db", "desktop.ini"})
 """Files a file manager writes into a folder it shows (macOS Finder, Windows Explorer): a folder holding only these
 is empty to the user, and is built into (they had had it refused as holding another model's files)."""
@@ -255,6 +260,18 @@ def _put_in_place(staging: Path, root: Path) -> None:
         shutil.rmtree(aside, ignore_errors=True)
     finally:
         os.close(held)
+
+
+def _move_in(staging: Path, root: Path) -> None:
+    """The parts of the model built in ``staging`` (a folder inside ``root``) moved into ``root`` over an earlier tiny
+    model's, model_index.json last: the moves take a moment, where the build before them takes seconds."""
+    for name in sorted(os.listdir(staging), key=lambda name: name == "model_index.json"):
+        target = root / name
+        if target.is_dir() and not target.is_symlink():
+            shutil.rmtree(target)
+        else:
+            target.unlink(missing_ok=True)
+        os.rename(staging / name, target)
 
 
 def _write_tiny_stable_diffusion(root: Path, seed: int) -> None:
