@@ -2494,6 +2494,29 @@ def test_edit_refuses_a_prompt_that_names_nothing_before_it_loads_the_model(prom
     assert main([*edit, "--prompt", "🐶"]) == 0 and len(loaded) == 1  # a symbol names something
 
 
+def test_a_prompt_the_locale_could_not_decode_is_refused_naming_it_before_the_model_loads(sphere_file, tmp_path,
+                                                                                        monkeypatch, capsys):
+    """Under a locale that is not UTF-8 (LC_ALL=C, PYTHONUTF8=0) --prompt "a café ball" arrives with "é"'s bytes as
+    surrogates ('\\udcc3\\udca9'): voxe edit loaded the model, then the tokenizer raised "TypeError: TextEncodeInput
+    must be Union[...]", a traceback (exit 1); voxe evaluate so of its prompts and --object."""
+    import voxe_core.cli.edit as edit_command
+
+    loaded = []
+    monkeypatch.setattr(edit_command, "load_guidance", stand_in_guidance(loaded))
+    text = b"a caf\xc3\xa9 ball".decode("ascii", "surrogateescape")
+    told = ("holds '\\udcc3', a byte that was no text in the encoding it was read in (a command line read under a "
+            "locale that is not UTF-8: LC_ALL=C.UTF-8 or PYTHONUTF8=1 reads it whole)")
+    assert main(["edit", str(sphere_file), "--out", str(tmp_path / "out"), "--device", "cpu", "-q", "--prompt",
+                 text]) == 2
+    assert capsys.readouterr().err == f"voxe edit: error: the prompt {told}\n" and not loaded
+    evaluate = ["evaluate", str(sphere_file), "--out", str(tmp_path / "eval"), "--clip-model", str(tmp_path / "none")]
+    assert main([*evaluate, "--object", "ball", "--edit", str(sphere_file), text]) == 2
+    assert capsys.readouterr().err == f"voxe evaluate: error: the prompt {told}\n"
+    assert main([*evaluate, "--object", text, "--edit", str(sphere_file), "a ball"]) == 2
+    assert capsys.readouterr().err == f"voxe evaluate: error: the source text {told}\n"
+    assert not (tmp_path / "out").exists() and not (tmp_path / "eval").exists()
+
+
 @pytest.mark.parametrize("flag", [[], ["--fused-marcher"]])
 def test_edit_marches_its_renders_fused_only_when_asked(flag, sphere_grid, tmp_path, monkeypatch):
     import voxe_core.cli.edit as edit_command

@@ -313,7 +313,14 @@ def check_prompt_length(user_text: str, view_words: bool = True) -> None:
 
 def check_text_length(text: str, what: str, remedy: str) -> None:
     """ValueError naming ``what`` (and ``remedy``) when ``text`` surely holds more tokens than a CLIP text encoder
-    reads (:func:`tokens_at_least`); the encoder would cut it there and read a shorter text."""
+    reads (:func:`tokens_at_least`); the encoder would cut it there and read a shorter text. ValueError too when it
+    holds a byte the encoding it was read in had no character for (surrogateescape's: a command line under a locale
+    that is not UTF-8 gives one for each byte of "é"): the tokenizer had raised a TypeError, a traceback, after
+    the model's load."""
+    if (undecoded := re.search("[\udc80-\udcff]", text)) is not None:
+        raise ValueError(f"{what} holds {undecoded[0]!r}, a byte that was no text in the encoding it was read in (a "
+                         "command line read under a locale that is not UTF-8: LC_ALL=C.UTF-8 or PYTHONUTF8=1 reads "
+                         "it whole)")
     if (tokens := tokens_at_least(text)) > TEXT_ENCODER_TOKENS:
         shown = text if len(text) <= 60 else f"{text[:30]}...{text[-15:]}"
         raise ValueError(f'{what} is at least {tokens} tokens as the model sees it ("{shown}"); its text '
