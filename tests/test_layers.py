@@ -111,10 +111,14 @@ def circles(graph: dict[str, set[str]]) -> list[list[str]]:
             if len(component) > 1:
                 found.append(sorted(component))
 
-    sys.setrecursionlimit(max(10_000, sys.getrecursionlimit()))
-    for v in sorted(graph):
-        if v not in index:
-            connect(v)
+    limit = sys.getrecursionlimit()
+    sys.setrecursionlimit(max(10_000, limit))
+    try:
+        for v in sorted(graph):
+            if v not in index:
+                connect(v)
+    finally:  # (left raised, it let test_cli's JSON nested 5000 deep parse, which that test needs refused)
+        sys.setrecursionlimit(limit)
     return found
 
 
