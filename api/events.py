@@ -91,14 +91,19 @@ class EventHub:
         self._watches.append(watch)
         if self._task is None or self._task.done():
             self._task = asyncio.get_running_loop().create_task(self._run())
+        clock = asyncio.get_running_loop().time
         try:
             yield f"retry: {RETRY_MS}\n\n"
-            sent_progress = None
+            sent_progress, said_at = None, clock()
             while True:
+                # Counted from the stream's last words, not its last wake: a job whose row changes without news (one
+                # waiting on another job's reconstruction rewrites its unchanged progress every second) had woken it
+                # too often for a keepalive ever to go, and a proxy's or the web UI's idle timeout cut it.
                 try:
-                    await asyncio.wait_for(watch.wake.wait(), KEEPALIVE_S)
+                    await asyncio.wait_for(watch.wake.wait(), max(0.0, said_at + KEEPALIVE_S - clock()))
                 except TimeoutError:
                     yield ": keepalive\n\n"
+                    said_at = clock()
                     continue
                 if self._ending:
                     return
@@ -106,6 +111,7 @@ class EventHub:
                 events, watch.events = watch.events, []
                 for event in events:
                     yield sse(event, event["kind"], event["id"])
+                    said_at = clock()
                 if watch.key_ended:
                     yield sse({"detail": f"the API key of this stream {watch.key_ended}"}, "error")
                     return
@@ -117,6 +123,7 @@ class EventHub:
                     preview = watch.job.get("preview_url")
                     yield sse({**watch.job, "preview_url": root + preview} if root and preview else watch.job,
                               "progress")
+                    said_at = clock()
                 if watch.job["state"] in TERMINAL_STATES:
                     return
         finally:

@@ -365,6 +365,55 @@ def test_a_streams_progress_says_a_cancel_was_requested_while_the_job_runs_on(in
     assert [(e["data"]["state"], e["data"].get("cancel_requested")) for e in events] == [("running", True)], events
 
 
+def test_a_stream_whose_job_changes_without_news_still_gets_its_keepalives(in_process, tmp_path, monkeypatch):
+    """A job waiting on another job's reconstruction rewrites its unchanged progress every second (its updated_at
+    moves, nothing it shows does): each rewrite woke its stream, which had nothing to send and started its keepalive
+    wait over, so no keepalive ever went while the wait lasted, and a proxy's idle timeout (or the web UI's 45 s)
+    cut the stream. The keepalive is counted from the stream's last words."""
+    from sqlalchemy import update
+
+    import api.events
+    from api.events import EventHub
+    from api.routes.jobs import progress_view
+    from voxe_service.db import session_scope
+    from voxe_service.models import RUNNING, Job, utcnow
+
+    monkeypatch.setattr(api.events, "KEEPALIVE_S", 1.0)
+    client, data = in_process
+    scene = make_scene(client, data, tmp_path)
+    job = client.post("/v1/jobs", json={"scene_id": scene["id"], "prompt": "a mic made of gold"}).json()
+    waiting = {"state": RUNNING, "stage": "reconstruct", "message": "waiting for the scene's reconstruction r1"}
+
+    def rewrite_unchanged():  # as worker/tasks.py's wait for a reconstruction does, faster
+        with session_scope() as session:
+            session.execute(update(Job).where(Job.id == job["id"]).values(updated_at=utcnow(), **waiting))
+
+    async def main():
+        hub, said = EventHub(0.1, progress_view), []
+
+        async def read():
+            async for chunk in hub.stream(job["id"], "local"):
+                said.append((asyncio.get_running_loop().time(), chunk))
+
+        reader = asyncio.create_task(read())
+        try:
+            for _ in range(50):  # 5 s
+                await asyncio.to_thread(rewrite_unchanged)
+                await asyncio.sleep(0.1)
+        finally:
+            reader.cancel()
+            await hub.close()
+        return said
+
+    said = asyncio.run(main())
+    assert any('"state":"running"' in chunk for _, chunk in said if "event: progress" in chunk), said
+    quiet_from = max(at for at, chunk in said if "event: progress" in chunk)
+    keepalives = [at for at, chunk in said if chunk == ": keepalive\n\n" and at > quiet_from]
+    assert len(keepalives) >= 2, said  # (5 s of rewrites, the first running snapshot within the first second)
+    # (1 s apart, with room for a loaded machine's delays)
+    assert keepalives[0] - quiet_from < 2.5 and all(b - a < 2.5 for a, b in zip(keepalives, keepalives[1:])), said
+
+
 @pytest.mark.parametrize("ending", ["revoked_at", "expires_at"])
 def test_a_stream_ends_once_the_key_that_opened_it_is_revoked_or_expires(in_process, tmp_path, ending):
     """A revoked token stops working at once (README, ``revoke-key``), an expired one at its expiry: a stream opened
