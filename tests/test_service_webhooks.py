@@ -1370,6 +1370,32 @@ def test_a_webhook_connects_only_to_the_address_its_name_was_checked_as(monkeypa
         refused.close()
 
 
+def test_a_name_a_dns64_resolver_answers_for_is_judged_by_the_ipv4_addresses_it_carries(monkeypatch):
+    """Where the resolver does DNS64 (an IPv6-only network, a public DNS64 service), a name with IPv4 addresses only
+    resolves to them and to their NAT64 forms (64:ff9b::/96 + the IPv4 address), which the translator sends to that
+    IPv4 address: every such receiver had been refused, "a reserved address". A NAT64 address is judged as the IPv4
+    address it carries: a public one goes, a private one is refused naming it."""
+    from voxe_service.webhooks import TargetRefused, allowed_addresses, check_target
+
+    dns64 = {"hooks.test": ["93.184.215.14", "64:ff9b::5db8:d70e"], "inside.test": ["10.1.2.3", "64:ff9b::a01:203"]}
+    real_getaddrinfo = socket.getaddrinfo
+
+    def resolver(host, port, *args, **kwargs):
+        if host not in dns64:
+            return real_getaddrinfo(host, port, *args, **kwargs)
+        return [(socket.AF_INET6 if ":" in a else socket.AF_INET, socket.SOCK_STREAM, socket.IPPROTO_TCP, "",
+                 (a, port, 0, 0) if ":" in a else (a, port)) for a in reversed(dns64[host])]
+
+    monkeypatch.setattr(socket, "getaddrinfo", resolver)
+    check_target("https://hooks.test/hook", [], 5.0)  # had been refused: "resolves to 64:ff9b::5db8:d70e, a reserved"
+    assert allowed_addresses("hooks.test", 443, []) == ["64:ff9b::5db8:d70e", "93.184.215.14"]
+    check_target("https://[64:ff9b::5db8:d70e]/hook", [], 5.0)
+    with pytest.raises(TargetRefused, match=r"resolves to 64:ff9b::a01:203, a private \(as 10.1.2.3\) address"):
+        check_target("https://inside.test/hook", [], 5.0)
+    with pytest.raises(TargetRefused, match=r"a loopback \(as 127.0.0.1\) address"):
+        check_target("http://[64:ff9b::7f00:1]/hook", [], 5.0)
+
+
 def test_a_webhook_over_tls_names_the_host_not_the_checked_address(monkeypatch):
     """The connection goes to the checked address, but TLS names the URL's host (SNI; the certificate is
     verified against it): a server that records the name its client hello asks for sees the host."""

@@ -391,14 +391,21 @@ _NAT64 = ipaddress.ip_network("64:ff9b::/96")
 def refused_rule(address: ipaddress.IPv4Address | ipaddress.IPv6Address) -> str | None:
     """Why a webhook may not go to ``address`` (None: a public address), the most specific name first.
 
-    An IPv6 address that carries an IPv4 one is judged by it too (6to4 ``2002::/16``; mapped ``::ffff:a.b.c.d`` and
-    NAT64 ``64:ff9b::/96`` addresses are already refused as reserved); anything else that is not globally routable
-    (e.g. carrier-grade NAT, 100.64.0.0/10) is "non-public".
+    An IPv6 address that carries an IPv4 one is judged by it too (6to4 ``2002::/16``; mapped ``::ffff:a.b.c.d``
+    addresses are already refused as reserved), and a NAT64 one (``64:ff9b::/96``) by it alone: it is what a DNS64
+    resolver answers for a name with IPv4 addresses only, beside them, and its translator goes to that IPv4 address (as
+    reserved, every such receiver had been refused wherever the resolver does DNS64). Anything else that is not
+    globally routable (e.g. carrier-grade NAT, 100.64.0.0/10) is "non-public".
 
     Examples:
         >>> [refused_rule(ipaddress.ip_address(a)) for a in ("8.8.8.8", "10.1.2.3", "100.64.1.2", "2002:a01:203::1")]
         [None, 'private', 'non-public', 'private (as 10.1.2.3)']
+        >>> [refused_rule(ipaddress.ip_address(a)) for a in ("64:ff9b::808:808", "64:ff9b::a01:203")]
+        [None, 'private (as 10.1.2.3)']
     """
+    if address.version == 6 and address in _NAT64:
+        carried = ipaddress.IPv4Address(int(address) & 0xFFFFFFFF)
+        return None if (rule := refused_rule(carried)) is None else f"{rule} (as {carried})"
     # Link-local and unspecified addresses are "private" to Python too: their own names come first.
     for rule, refused in (("loopback", address.is_loopback), ("link-local", address.is_link_local),
                           ("unspecified", address.is_unspecified), ("multicast", address.is_multicast),
@@ -406,8 +413,7 @@ def refused_rule(address: ipaddress.IPv4Address | ipaddress.IPv6Address) -> str 
         if refused:
             return rule
     if address.version == 6:
-        carried = address.ipv4_mapped or address.sixtofour or (
-            ipaddress.IPv4Address(int(address) & 0xFFFFFFFF) if address in _NAT64 else None)
+        carried = address.ipv4_mapped or address.sixtofour
         if carried is not None and (rule := refused_rule(carried)) is not None:
             return f"{rule} (as {carried})"
     return None if address.is_global else "non-public"
