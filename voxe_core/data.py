@@ -221,6 +221,7 @@ def load_scene(
     aabb = _aabb_scale(meta, where)
     top_model = _camera_model(meta, where, None)
     per_frame, paths, models = [], [], []
+    first_of: dict[str, int] = {}  # each model's first frame: scanning every earlier frame had cost n² (minutes)
     for i, frame in enumerate(frames):
         if not isinstance(frame, dict):
             raise where(f"frame entry must be an object, got {_shown(frame)}", i)
@@ -244,7 +245,8 @@ def load_scene(
         model = _camera_model(frame, where, i) or top_model or ("OPENCV" if _distorts(merged) else "PINHOLE")
         _check_distortion(model, merged, where, i)
         # Cameras hold one lens model: a pinhole is an OPENCV lens without terms, but no fisheye lens is a pinhole.
-        clash = next((j for j, m in enumerate(models) if m != model and "OPENCV_FISHEYE" in (m, model)), None)
+        clash = min((j for m, j in first_of.items() if m != model and "OPENCV_FISHEYE" in (m, model)),
+                    default=None)
         if clash is not None:
             other = models[clash] if model == "OPENCV_FISHEYE" else model
             raise where(f"camera_model {model} differs from frame {clash}'s {models[clash]}; the fisheye and the "
@@ -252,6 +254,7 @@ def load_scene(
         per_frame.append(merged)
         paths.append(file_path)
         models.append(model)
+        first_of.setdefault(model, i)
     poses = _check_poses(frames, where)
     seen: dict[Path, int] = {}
     for i, p in enumerate(paths):
