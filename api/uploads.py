@@ -570,14 +570,17 @@ def check_dataset(root: Path, staging: Path, downsample: int) -> tuple[str, int,
         raise UploadError(f"the upload is neither a dataset nor a mesh (it holds {listing or 'no file'}): send a "
                           "dataset folder or .zip (transforms_train.json: NeRF-synthetic; transforms.json: instant-ngp "
                           "/ nerfstudio; a COLMAP model sparse/0/ or sparse/ beside images/), or one mesh (.obj, .ply)")
+    files = sum(1 for p in root.rglob("*") if p.is_file())  # the most frames that can each have an image
     try:
         fmt = detect_format(root)
         try:
-            load_scene(root, "train", downsample=downsample, max_images=1, confine_paths=True, pixels=False)
+            load_scene(root, "train", downsample=downsample, max_images=1, confine_paths=True, pixels=False,
+                       max_frames=files)
         except DatasetError as exc:
             if "smaller than downsample" not in str(exc):
                 raise
-            load_scene(root, "train", downsample=1, max_images=1, confine_paths=True, pixels=False)
+            load_scene(root, "train", downsample=1, max_images=1, confine_paths=True, pixels=False,
+                       max_frames=files)
         if fmt == "colmap":
             json_path, meta = colmap_transforms(root)
         else:
@@ -588,20 +591,20 @@ def check_dataset(root: Path, staging: Path, downsample: int) -> tuple[str, int,
     frames = meta["frames"]
     width, height = _check_frame_images(root, json_path.relative_to(root).as_posix(), frames, staging)
     if fmt == "nerf_synthetic":
-        splits = ["train"] + [s for s in ("val", "test") if _split_loads(root, s)]
+        splits = ["train"] + [s for s in ("val", "test") if _split_loads(root, s, files)]
     else:
         splits = ["all"]
     return fmt, len(frames), width, height, splits
 
 
-def _split_loads(root: Path, split: str) -> bool:
+def _split_loads(root: Path, split: str, files: int) -> bool:
     """Whether the NeRF-synthetic dataset's ``transforms_<split>.json`` loads (its first image decoded): one that does
     not (damaged, naming images not sent) had been listed in the scene's splits all the same. Jobs fit the train split
     alone, so such a file is left unlisted, not refused."""
     if not (root / f"transforms_{split}.json").is_file():
         return False
     try:
-        load_scene(root, split, max_images=1, confine_paths=True, pixels=False)
+        load_scene(root, split, max_images=1, confine_paths=True, pixels=False, max_frames=files)
     except DatasetError:
         return False
     return True

@@ -163,6 +163,12 @@ HOSTILE_UPLOADS = {
     # json's RecursionError had escaped the check: a 500
     "json nested too deeply": (lambda d: _with_json_number(d, "nested", "[" * 100_000 + "]" * 100_000), 422,
                                "transforms_train.json: its JSON arrays or objects nest too deeply"),
+    # each frame's entry and pose had been checked before any image was looked for: a json of a million frames
+    # (compressing to a few MB) held the request for many minutes
+    "more frames than files": (lambda d: _with_json(d, lambda m: m["frames"].extend(
+        {**m["frames"][0], "file_path": f"./train/x_{i}"} for i in range(100_000))), 422,
+                               "invalid dataset: transforms_train.json: 'frames' lists 100,003 frames, more than the 4 "
+                               "files in the dataset folder: each frame needs an image of its own"),
     # numpy had read JSON's true as 1: the pose taken
     "boolean in a pose": (lambda d: _with_json(d, lambda m: m["frames"][1]["transform_matrix"][3].__setitem__(3, True)),
                           422, "frame 1 ('./train/r_4'): transform_matrix[3][3] is True, not a number"),

@@ -168,6 +168,7 @@ def load_scene(
     confine_paths: bool = False,
     resample: str = "bilinear",
     pixels: bool = True,
+    max_frames: int | None = None,
 ) -> Scene:
     """Load one split of a dataset folder.
 
@@ -185,6 +186,9 @@ def load_scene(
     through ``..``), so an untrusted upload cannot read other files on the machine.
     ``pixels=False`` (the upload check) decodes each kept image only to find what would refuse it (``_check_image``),
     keeping none: ``images`` is (N, H, W, 0). Its float copies had held a 50-megapixel upload's 1.2 GB or more.
+    ``max_frames`` (the upload check: the files the folder holds) refuses a split of more frames than that, which
+    cannot each have an image of their own, before checking them one by one: a json of a million frames compresses
+    to a few MB, and their checks had held an upload's request for many minutes.
     """
     if not isinstance(downsample, int) or downsample < 1:
         raise ValueError(f"downsample must be a positive integer, got {downsample!r}")
@@ -215,6 +219,9 @@ def load_scene(
         raise where(f"'frames' must be a list, got {_shown(frames)}")
     if not frames:
         raise where("empty split: 'frames' has no entries")
+    if max_frames is not None and len(frames) > max_frames:
+        raise where(f"'frames' lists {len(frames):,} frames, more than the {max_frames:,} files in the dataset "
+                    "folder: each frame needs an image of its own")
     where.frames = frames
 
     top = _check_intrinsics(meta, where, None)
