@@ -258,6 +258,30 @@ def test_a_directory_that_lies_about_compressed_sizes_is_still_a_bomb(client, ro
     assert stored_files(root) == [] and staged(root) == []
 
 
+@pytest.mark.parametrize("binary", [True, False])
+def test_a_colmap_model_listing_more_images_than_the_upload_holds_is_refused_before_reading_them(tmp_path, binary):
+    """A COLMAP model of 3 images whose images file lists 100,000 (valid records: 8 MB of images.bin, 660 kB
+    deflated) had every image read and made a frame before the count was refused (300,000: 37 s)."""
+    from api.uploads import UploadError, check_dataset
+    from captures import pose_at, square_capture, write_colmap_model
+
+    capture = square_capture(tmp_path)
+    model = write_colmap_model(capture / "sparse" / "0", [("PINHOLE", 16, 12, [12.0, 12.0, 8.0, 6.0])],
+                               [(f"{i}.png", 0, pose_at(i)) for i in range(3)], binary)
+    count = 100_000
+    if binary:
+        (model / "images.bin").write_bytes(struct.pack("<Q", count) + b"".join(
+            struct.pack("<i7di", i + 1, 1, 0, 0, 0, i, 0, 4, 1) + b"%d.png\0" % i + struct.pack("<Q", 0)
+            for i in range(count)))
+    else:
+        (model / "images.txt").write_text("".join(f"{i + 1} 1 0 0 0 {i} 0 4 1 {i}.png\n\n" for i in range(count)))
+    files = sum(1 for p in capture.rglob("*") if p.is_file())
+    with pytest.raises(UploadError) as info:
+        check_dataset(capture, capture, 1)
+    assert str(info.value) == (f"invalid dataset: sparse/0/images.{'bin' if binary else 'txt'}: lists 100,000 images, "
+                               f"more than the {files} files in the dataset folder: each image needs a file of its own")
+
+
 def test_an_image_stored_a_quarter_turn_round_is_refused_naming_its_exif_orientation(tmp_path):
     """A phone's portrait photo stored landscape and tagged to display turned, among upright ones: the upload's size
     check names the tag, as the loader's refusals do (``voxe_core.data.quarter_turn_hint``)."""

@@ -207,7 +207,7 @@ def load_scene(
                          f"NeRF-synthetic, whose splits are its transforms_{{train,val,test}}.json: load split "
                          f"'test' (or 'val') without holdout_every")
     if fmt == "colmap":
-        json_path, meta = colmap_transforms(root)
+        json_path, meta = colmap_transforms(root, max_frames)
     else:
         json_path = root / (f"transforms_{split}.json" if fmt == "nerf_synthetic" else "transforms.json")
         meta = _read_json(json_path)
@@ -398,18 +398,18 @@ def _check_invertible(cams: Cameras, keep: list[int], where: _Where) -> None:
                         f"{pixel[1]:.0f}): its rays there would jump across the fold", frame)
 
 
-def colmap_transforms(root: Path) -> tuple[Path, dict]:
+def colmap_transforms(root: Path, max_images: int | None = None) -> tuple[Path, dict]:
     """A COLMAP model as a transforms.json would hold it: (the file errors name, the meta dict).
 
     Frames are the model's images sorted by name (``images/<name>``), each with its camera's
-    intrinsics and distortion and its pose as an OpenGL camera-to-world matrix.
+    intrinsics and distortion and its pose as an OpenGL camera-to-world matrix. ``max_images``: ``read_model``'s.
     """
     model_dir = colmap_model_dir(root)
     if model_dir is None:
         raise DatasetError(f"{root}: no COLMAP model (sparse/0/cameras.bin|txt or sparse/cameras.bin|txt)", root)
     label = model_dir.relative_to(root).as_posix()
     try:
-        cameras, images = read_model(model_dir)
+        cameras, images = read_model(model_dir, max_images)
     except ColmapError as e:
         raise DatasetError(f"{label}/{e}", e.path) from None
     images_file = model_dir / ("images.bin" if (model_dir / "cameras.bin").is_file() else "images.txt")
