@@ -631,6 +631,48 @@ def test_a_workers_heartbeats_failing_log_one_traceback_then_a_line_each_and_say
         "worker w@host: heartbeats succeed again, after 4 failed in a row")
 
 
+def test_a_heartbeat_beating_as_its_worker_stops_leaves_the_workers_row_deleted(db, monkeypatch):
+    """At shutdown the worker deletes its heartbeat row (it is no longer alive); a beat already under way wrote the
+    row again after that delete, so the stopped worker looked alive for one more VOXE_JOB_STALE_TIMEOUT_S. A beat the
+    stop overtakes writes nothing."""
+    import threading
+    import types
+
+    from sqlalchemy import select
+
+    from voxe_service.db import session_scope
+    from voxe_service.models import WorkerHeartbeat
+    from worker import runtime, tasks
+
+    checks, second_beat, stopped = [], threading.Event(), threading.Event()
+
+    def check_models(settings):
+        checks.append(1)
+        if len(checks) == 2:  # the second beat, under way as the worker stops
+            second_beat.set()
+            assert stopped.wait(10)
+        return {}
+
+    monkeypatch.setattr(db, "worker_heartbeat_s", 0.01)
+    monkeypatch.setattr(tasks, "check_models", check_models)
+    for sweep in ("sweep_scratch", "sweep_scene_datasets", "sweep_ingest_scratch"):
+        monkeypatch.setattr(runtime, sweep, lambda settings: [])
+    monkeypatch.setattr(tasks, "_heartbeat_stop", threading.Event())
+    beating = threading.Thread(target=tasks._beat, args=("w@host", "q", "cpu", {}), daemon=True)
+    beating.start()
+    try:
+        assert second_beat.wait(10)
+        with session_scope() as session:  # the first beat's row: the worker alive
+            assert session.scalars(select(WorkerHeartbeat.hostname)).all() == ["w@host"]
+        tasks._stop_heartbeat(sender=types.SimpleNamespace(hostname="w@host"))
+    finally:
+        stopped.set()
+        beating.join(10)
+    assert not beating.is_alive()
+    with session_scope() as session:
+        assert session.scalars(select(WorkerHeartbeat.hostname)).all() == []
+
+
 def test_a_workers_model_checks_failing_log_one_traceback_then_a_line_each_and_the_last_answer_stands(monkeypatch,
                                                                                                        caplog):
     """A model folder that cannot be read (an NFS cache gone stale) had logged "could not check its models" with its

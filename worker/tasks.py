@@ -939,6 +939,9 @@ def ingest_task(self, scene_id: str) -> TaskResult:
 
 # --------------------------------------------------------------------------- worker lifecycle
 _heartbeat_stop = threading.Event()
+_heartbeat_write = threading.Lock()
+"""Held by a beat writing the heartbeat row and by the shutdown deleting it: a beat the stop overtook had written the
+row again after its delete, the stopped worker looking alive one more window."""
 
 
 SCRATCH_SWEEP_S = 600.0
@@ -967,13 +970,16 @@ def _beat(hostname: str, queues: str, device: str, models: dict) -> None:
         else:
             model_checks.succeeded()
         try:
-            with runtime.session_scope() as session:
-                row = session.get(WorkerHeartbeat, hostname)
-                if row is None:
-                    row = WorkerHeartbeat(hostname=hostname, pid=os.getpid(), queues=queues, device=device)
-                    session.add(row)
-                row.pid, row.queues, row.device, row.models, row.last_seen = (
-                    os.getpid(), queues, device, models, utcnow())
+            with _heartbeat_write:
+                if _heartbeat_stop.is_set():  # stopping: its row is deleted, or about to be
+                    break
+                with runtime.session_scope() as session:
+                    row = session.get(WorkerHeartbeat, hostname)
+                    if row is None:
+                        row = WorkerHeartbeat(hostname=hostname, pid=os.getpid(), queues=queues, device=device)
+                        session.add(row)
+                    row.pid, row.queues, row.device, row.models, row.last_seen = (
+                        os.getpid(), queues, device, models, utcnow())
         except Exception as exc:  # noqa: BLE001 - a missed heartbeat is not fatal
             beats.note_failure(exc)
         else:
@@ -1155,7 +1161,7 @@ def _stop_heartbeat(sender=None, **_kwargs) -> None:
     hostname = getattr(sender, "hostname", None)
     if hostname:
         try:
-            with runtime.session_scope() as session:
+            with _heartbeat_write, runtime.session_scope() as session:
                 row = session.get(WorkerHeartbeat, hostname)
                 if row is not None:
                     session.delete(row)
