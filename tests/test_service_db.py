@@ -921,6 +921,25 @@ def test_processes_opening_a_fresh_sql_broker_at_once_all_open_it_in_wal_mode(tm
             connection.close()
 
 
+def test_processes_opening_a_fresh_sql_broker_on_postgresql_at_once_all_open_it(postgres_server):
+    """The SQL broker on PostgreSQL (sqla+postgresql+psycopg://): kombu makes its tables as each process first opens
+    the database, and of the API and workers starting at once on a fresh database one was refused (a duplicate key
+    in pg_type as two made the same table). They make them one at a time."""
+    from kombu import Connection
+
+    from voxe_service.broker import register
+
+    register()
+    for trial in range(5):
+        url = f"sqla+{postgres_server.create_database()}"
+
+        def first_open():
+            with Connection(url) as conn:
+                conn.default_channel.session.close()  # (the channel's first session opens the database)
+
+        assert _processes_at_once(first_open, 4) == [None] * 4
+
+
 def test_processes_first_using_a_queue_of_the_sql_broker_at_once_all_use_its_one_row(tmp_path):
     """kombu makes a queue's row as a process first sends to or reads it: of the API and a worker doing so at once on
     a fresh broker, one was refused "UNIQUE constraint failed: kombu_queue.name" (9 of 30 trials of four). It reads

@@ -31,7 +31,7 @@ from sqlalchemy import create_engine, delete, text
 from sqlalchemy.engine import make_url
 from sqlalchemy.exc import IntegrityError
 
-from voxe_service.db import connect_timeout_args, make_engine, sqlite_setup
+from voxe_service.db import connect_timeout_args, database_setup, make_engine
 
 log = logging.getLogger("voxe.broker")
 
@@ -59,7 +59,7 @@ class Channel(_sqla.Channel):
         url = self.connection.client.hostname
         if url in self._engines:
             return super()._open()
-        with sqlite_setup(url):  # kombu makes its tables as it first opens the database
+        with database_setup(url):  # kombu makes its tables as it first opens the database
             engine, session_factory = super()._open()
         with engine.begin() as conn:  # the delivered messages an earlier version kept
             conn.execute(delete(self.message_cls.__table__).where(self.message_cls.visible.is_(False)))

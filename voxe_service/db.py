@@ -14,6 +14,7 @@ from sqlalchemy import Engine, create_engine, event, select, text, update
 from sqlalchemy.engine import make_url
 from sqlalchemy.exc import OperationalError, TimeoutError as PoolTimeout
 from sqlalchemy.orm import Session, sessionmaker
+from sqlalchemy.pool import NullPool
 
 from voxe_service import models
 from voxe_service.failing import FailingStreak
@@ -196,25 +197,40 @@ def run_migrations(database_url: str) -> None:
     Processes starting together (API replicas) upgrade one after another: PostgreSQL under an advisory lock
     (``migrations/env.py``), a SQLite file under a lock file beside it (SQLite runs DDL outside transactions).
 
-    A SQLite file is set up under :func:`sqlite_setup` (in WAL mode before its tables are made).
+    A SQLite file is set up under :func:`database_setup` (in WAL mode before its tables are made).
     """
     from alembic import command
 
-    with sqlite_setup(database_url):
+    with database_setup(database_url):
         command.upgrade(alembic_config(database_url), "head")
 
 
+SETUP_LOCK = 0x766F7866
+"""The PostgreSQL advisory lock :func:`database_setup` holds (not the migrations' own, which they take inside it)."""
+
+
 @contextmanager
-def sqlite_setup(url: str) -> Iterator[None]:
-    """Set up a SQLite file (make its tables) inside: one process at a time, under a lock file beside it, the file
-    turned to WAL mode (which it keeps) first; other databases as they are, with no lock.
+def database_setup(url: str) -> Iterator[None]:
+    """Set up a database (make its tables) inside: one process at a time. A SQLite file under a lock file beside it,
+    the file turned to WAL mode (which it keeps) first; a PostgreSQL database under an advisory lock; other databases
+    as they are, with no lock.
 
     The metadata database (:func:`run_migrations`) and the SQL broker's (``voxe_service.broker``), each opened at
     once by the API and a worker on a fresh install: the service's connections (:func:`make_engine`) each ask for
     WAL at connect, and on a file still in rollback mode one of two doing so at once was refused "database is
     locked" (SQLite's deadlock rule: no busy timeout is waited); two making the same tables, one was refused
-    "table ... already exists" (SQLite runs DDL outside transactions).
+    "table ... already exists" (SQLite runs DDL outside transactions), on PostgreSQL a duplicate key in its catalog
+    (kombu's tables: each process looks for them, then makes them).
     """
+    if make_url(url).get_backend_name() == "postgresql":
+        engine = create_engine(url, poolclass=NullPool, hide_parameters=True, connect_args=connect_timeout_args(url))
+        try:  # held by the session, in no transaction; released as its connection closes, or its process dies
+            with engine.connect().execution_options(isolation_level="AUTOCOMMIT") as connection:
+                connection.execute(text("SELECT pg_advisory_lock(:key)"), {"key": SETUP_LOCK})
+                yield
+        finally:
+            engine.dispose()
+        return
     path = sqlite_file(url)
     if path is None:
         yield
