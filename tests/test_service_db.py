@@ -1061,7 +1061,7 @@ def test_a_postgresql_that_accepts_and_never_answers_is_an_outage_within_the_con
     from voxe_service import db as db_module
     from voxe_service.db import connect_timeout_args, database_outage, make_engine, run_migrations
 
-    assert connect_timeout_args("postgresql+psycopg://u@db/voxe?connect_timeout=3") == {}
+    assert "connect_timeout" not in connect_timeout_args("postgresql+psycopg://u@db/voxe?connect_timeout=3")
     assert connect_timeout_args("sqlite:///./var/voxe.db") == {}
     monkeypatch.setattr(db_module, "POSTGRES_CONNECT_TIMEOUT_S", 2)
 
@@ -1083,6 +1083,31 @@ def test_a_postgresql_that_accepts_and_never_answers_is_an_outage_within_the_con
             assert time.monotonic() - started < 15
         finally:
             engine.dispose()
+
+
+def test_the_services_postgresql_connections_give_up_on_a_server_whose_machine_went_away(postgres_server):
+    """libpq has no read timeout and the system's keepalives first probe after 2 hours: a query whose PostgreSQL
+    machine crashed or was cut off (the request taken, no answer, no reset ever) waited that long. The service's
+    connections now keep TCP keepalives and a TCP user timeout (a black-holed server: "Connection timed out" within
+    a minute, not waited for), each setting the URL gives its own kept."""
+    def tcp_settings(url: str) -> dict:
+        from voxe_service.db import make_engine
+
+        engine = make_engine(url)
+        try:
+            with engine.connect() as connection:
+                given = connection.connection.dbapi_connection.info.get_parameters()
+        finally:
+            engine.dispose()
+        return {key: given.get(key) for key in ("keepalives", "keepalives_idle", "keepalives_interval",
+                                                "keepalives_count", "tcp_user_timeout")}
+
+    url = postgres_server.create_database()
+    assert tcp_settings(url) == {"keepalives": "1", "keepalives_idle": "30", "keepalives_interval": "10",
+                                 "keepalives_count": "3", "tcp_user_timeout": "60000"}
+    assert tcp_settings(f"{url}?keepalives_idle=5&tcp_user_timeout=20000") == {
+        "keepalives": "1", "keepalives_idle": "5", "keepalives_interval": "10", "keepalives_count": "3",
+        "tcp_user_timeout": "20000"}
 
 
 # ------------------------------------------------------------------------------------------ the event timeline

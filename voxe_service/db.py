@@ -61,13 +61,23 @@ POSTGRES_CONNECT_TIMEOUT_S = 10
 so a server that accepts and never answers (hung, partitioned) had held every request and /readyz thread for good."""
 
 
+POSTGRES_KEEPALIVE = {"keepalives": 1, "keepalives_idle": 30, "keepalives_interval": 10, "keepalives_count": 3,
+                      "tcp_user_timeout": 60_000}
+"""libpq's TCP settings for a PostgreSQL connection where the URL sets none of its own: libpq has no read timeout, and
+the system's keepalives first probe after 2 hours, so a query whose server's machine went away (crashed, partitioned,
+a fail-over's old primary) had waited that long, holding its request, heartbeat or stage; now it fails, as an outage,
+within about a minute. (A server process stopped while its machine still answers TCP is not bounded by them.)"""
+
+
 def connect_timeout_args(url: str) -> dict:
-    """``connect_args`` giving a psycopg connect :data:`POSTGRES_CONNECT_TIMEOUT_S` unless the URL says its own."""
+    """``connect_args`` bounding a psycopg connection's waits: its connect :data:`POSTGRES_CONNECT_TIMEOUT_S`, a dead
+    server's machine :data:`POSTGRES_KEEPALIVE`, each setting unless the URL says its own."""
     parsed = make_url(url)
     if (parsed.get_backend_name(), parsed.get_driver_name()) not in (("postgresql", "psycopg"),
                                                                       ("postgresql", "psycopg2")):
         return {}
-    return {} if "connect_timeout" in parsed.query else {"connect_timeout": POSTGRES_CONNECT_TIMEOUT_S}
+    defaults = {"connect_timeout": POSTGRES_CONNECT_TIMEOUT_S, **POSTGRES_KEEPALIVE}
+    return {key: value for key, value in defaults.items() if key not in parsed.query}
 
 
 def make_engine(url: str, *, pool_size: int = 5, max_overflow: int = 10, pool_timeout_s: float = 30.0) -> Engine:
