@@ -943,6 +943,25 @@ def test_an_output_under_a_file_or_in_a_folder_not_writable_is_refused_naming_wh
         f"voxe render: error: cannot make the folder {tmp_path / 'views'}: permission denied\n"
 
 
+@pytest.mark.parametrize("code", [errno.ENOSPC, errno.EDQUOT])
+def test_an_output_folder_a_full_disk_cannot_make_exits_1_as_the_machines_failure(sphere_file, tmp_path, monkeypatch,
+                                                                                capsys, code):
+    """A full disk (or inode table, or quota) refusing the --out folder's mkdir had exited 2, "bad input": the
+    folder's error said the reason in words but dropped its errno, which the exit status is read from (README: a full
+    disk or quota exits 1). The words stay; the errno goes with them."""
+    def full(path, *args, **kwargs):
+        raise OSError(code, os.strerror(code), str(path))
+
+    monkeypatch.setattr(Path, "mkdir", full)
+    for command in (["render", str(sphere_file), "--ring", "2", "--size", "8"],
+                    ["convert-grid", str(sphere_file)], ["download", "j1", "--api", "http://127.0.0.1:9"]):
+        out = tmp_path / "new" / ("g.safetensors" if command[0] == "convert-grid" else "views")
+        assert main([*command, "--out", str(out), "--quiet"]) == 1, command
+        made = out.parent if command[0] == "convert-grid" else out
+        assert capsys.readouterr().err == (f"voxe {command[0]}: error: cannot make the folder {made}: "
+                                           f"{os.strerror(code).lower()}\n")
+
+
 def test_progress_off_a_terminal_is_a_line_now_and_then_not_ten_redraws_a_second(capsys, monkeypatch):
     """A 13 s reconstruct into a log had written 125 carriage-returned redraws (3.8 MB an hour); voxe wait's bar
     redrew unchanged snapshots too."""

@@ -406,14 +406,17 @@ def removing_made_folders_unless(succeeded) -> Iterator[None]:
 def _make_folder(path: Path) -> None:
     """``path`` made with its parents, those made noted for ``removing_made_folders_unless``; an OSError naming the
     file in the way, or the reason (``--out notes.txt/grid.safetensors`` had said "[Errno 17] File exists:
-    'notes.txt'")."""
+    'notes.txt'"), with the system's errno kept: a full disk or quota is the machine's failure, exit 1 (the words
+    alone, no errno, had exited 2, "bad input")."""
     missing = [folder for folder in (path, *path.parents) if not folder.exists()]
     try:
         path.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         in_the_way = next((folder for folder in (path, *path.parents) if folder.exists() and not folder.is_dir()), None)
-        raise OSError(f"cannot make the folder {path}: " + (f"{in_the_way} is a file, not a folder" if in_the_way
-                                                            else (exc.strerror or str(exc)).lower())) from None
+        error = OSError(f"cannot make the folder {path}: " + (f"{in_the_way} is a file, not a folder" if in_the_way
+                                                              else (exc.strerror or str(exc)).lower()))
+        error.errno = exc.errno  # (set, not passed: the message stays without "[Errno N]")
+        raise error from None
     made = _MADE_FOLDERS.get()
     if made is not None:
         made.extend(missing)
