@@ -130,12 +130,28 @@ def take_the_mode_of(target: Path, partial: Path) -> None:
     os.chmod(partial, stat.S_IMODE(old.st_mode))  # after chown, which clears set-user-ID and set-group-ID
 
 
+def flush_to_disk(path: Path) -> None:
+    """fsync the file at ``path``: its bytes on the disk before a rename puts it in place of the earlier file, which
+    the rename alone does not (a power loss or kernel crash soon after had been able to leave the final name holding
+    an empty or torn file on XFS, Btrfs or ext4 writing a new file, the earlier one gone). A file system that cannot
+    flush (EINVAL, ENOTSUP, ENOSYS: some FUSE mounts) is passed over; a write the flush finds failed (ENOSPC, EIO:
+    NFS reports them here) is the writer's error."""
+    fd = os.open(path, os.O_RDONLY | os.O_NOFOLLOW)
+    try:
+        os.fsync(fd)
+    except OSError as exc:
+        if exc.errno not in (errno.EINVAL, errno.ENOTSUP, errno.ENOSYS):
+            raise
+    finally:
+        os.close(fd)
+
+
 @contextmanager
 def replacing(path: str | os.PathLike) -> Iterator[Path]:
     """A temporary path beside ``path`` to write into; when the block ends without an error it replaces ``path``
-    in one rename, otherwise it is removed and ``path`` is left as it was. It keeps ``path``'s suffix (writers
-    pick their format by it), is hidden (:func:`partial_path`) from listings of the folder, and is this writer's own
-    (a random token in its name: two writers of one file at once had shared one partial file, each writing over the
+    in one rename, its bytes flushed to the disk first (:func:`flush_to_disk`), otherwise it is removed and ``path``
+    is left as it was. It keeps ``path``'s suffix (writers pick their format by it), is hidden (:func:`partial_path`)
+    from listings of the folder, and is this writer's own (a random token in its name: two writers of one file at once had shared one partial file, each writing over the
     other's bytes, the first to finish renaming that mix into place and the other failing "No such file"). An OSError
     about that temporary file (a missing folder, no permission) names ``path``, the file the caller asked for.
     A file replaced keeps its permissions, and a symlink stays one, its target replaced (the new file had taken the
@@ -169,6 +185,7 @@ def replacing(path: str | os.PathLike) -> Iterator[Path]:
         if locked(fd):
             remove_dead_partials(target)
         yield partial
+        flush_to_disk(partial)
         take_the_mode_of(target, partial)
         os.replace(partial, target)
     except OSError as exc:
