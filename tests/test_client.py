@@ -166,6 +166,23 @@ def test_a_service_url_with_a_user_or_password_is_refused_without_saying_the_pas
     assert asked == []
 
 
+def test_a_service_url_whose_scheme_is_left_out_is_refused_without_saying_its_password(capsys):
+    """``--api admin:s3cret@svc.test:8000`` (the scheme forgotten) and ``http:/admin:s3cret@svc.test`` (a slash
+    short) were refused as no http(s) URL quoting the whole of it, the password with it, where one written with its
+    ``//`` is quoted masked: each is now quoted with what stands before its ``@`` masked."""
+    from voxe_core.cli import main
+
+    for url, shown in (("admin:s3cret@svc.test:8000", "admin:***@svc.test:8000"),
+                       ("http:/admin:s3cret@svc.test", "http:/***@svc.test"),
+                       ("http:///admin:s3cret@svc.test", "http:///***@svc.test")):
+        message = (f"{shown!r} is not a service URL: it takes http:// or https:// and a host, as "
+                   "http://127.0.0.1:8000")
+        with pytest.raises(ValueError, match=f"^{re.escape(message)}$"):
+            Client(url)
+        assert main(["status", "j1", "--api", url]) == 2
+        assert capsys.readouterr().err == f"voxe status: error: --api: {message}\n"
+
+
 def test_a_redirect_answered_says_where_it_points_not_that_it_may_not_be_the_service(capsys):
     """An http:// --api that a proxy redirects to https:// had been "answered 301 with no content type, not the API's
     JSON (is it the Vox-E service?)", the redirect's target unsaid (the client follows none); one with a JSON body

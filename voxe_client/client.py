@@ -81,6 +81,18 @@ DECODED_PIECE_BYTES = 2**16
 """The most bytes :func:`_decoded` inflates at a time."""
 
 
+def _masked(url: str) -> str:
+    """``url`` as a refusal quotes it: what comes before an ``@`` in its authority (a user name and password) as
+    ``***``, where ``//`` leads it or where the scheme, or the ``//``, was left out (``--api admin:s3cret@host:8000``,
+    ``http:/admin:s3cret@host``: refused as no http(s) URL, the password quoted).
+
+    Examples:
+        >>> _masked("http://user:secret@host:8000"), _masked("admin:s3cret@host:8000"), _masked("http://host/a@b")
+        ('http://***@host:8000', 'admin:***@host:8000', 'http://host/a@b')
+    """
+    return re.sub(r"^((?:[^:/?#@]*:)?/*)[^/?#]*@", r"\1***@", url, count=1)
+
+
 def _segment(value: str) -> str:
     """``value`` as one path segment: an id holding "/", "?" or "#" had addressed another resource (the status of
     job "../scenes" printed the scene listing). "." and ".." name no resource (a URL drops them as dot segments), nor
@@ -213,7 +225,7 @@ class Client:
                 raise ValueError("the API key cannot be sent: it holds a line break, NUL or other whitespace than "
                                  "spaces and tabs (the end of a line of the file it was read from?)")
             headers["authorization"] = f"Bearer {api_key}".encode()  # UTF-8, as _header_bytes (not ASCII only)
-        shown = re.sub(r"//[^/?#]*@", "//***@", base_url, count=1)  # its password never quoted
+        shown = _masked(base_url)  # its password never quoted
         host = re.sub(r"^[^:/?#]*://|[/?#].*$", "", self.base_url, flags=re.S).rpartition("@")[2]
         if host.startswith("[") and "]" not in host:  # httpx had said "Invalid port: ':1'" of http://[::1
             raise NotAServiceURL(f"{shown!r} is not a service URL: its IPv6 address's '[' has no closing ']', as "
@@ -233,15 +245,15 @@ class Client:
             raise NotAServiceURL(f"{shown!r} is not a service URL: it has a user name or password, which the service "
                                  "takes none of (its API key goes as --api-key or VOXE_API_KEY; the client's api_key)")
         if url.scheme not in ("http", "https") or not url.host:  # (each call had failed as a service not reached)
-            raise NotAServiceURL(f"{base_url!r} is not a service URL: it takes http:// or https:// and a host, as "
+            raise NotAServiceURL(f"{shown!r} is not a service URL: it takes http:// or https:// and a host, as "
                                  f"{DEFAULT_URL}")
         if url.port is not None and not 0 < url.port <= 65535:  # httpx takes any number, and the socket then
             # connects to it modulo 65536: --api http://host:80000 had sent every call, and its key, to port 14464
-            raise NotAServiceURL(f"{base_url!r} is not a service URL: its port {url.port} is none of 1 to 65535")
+            raise NotAServiceURL(f"{shown!r} is not a service URL: its port {url.port} is none of 1 to 65535")
         if (tail := re.search(r"[?#].*", self.base_url, re.S)) is not None:  # httpx appends each call's path to
             # the query: --api "http://host:8000/?x=1" had sent every call to /?x=1/v1/... (a fragment: a page's place)
             part = "query" if tail[0][0] == "?" else "fragment"
-            raise NotAServiceURL(f"{base_url!r} is not a service URL: it has a {part}, {tail[0]!r}, which a base "
+            raise NotAServiceURL(f"{shown!r} is not a service URL: it has a {part}, {tail[0]!r}, which a base "
                                  f"URL takes none of (as {DEFAULT_URL} or https://host/prefix)")
         self._http = httpx.Client(base_url=url, headers=headers, timeout=timeout, transport=transport)
 
