@@ -158,8 +158,9 @@ def test_voxe_edit_and_refine_refuse_an_out_of_range_value_naming_the_option_typ
                                                                                   capsys):
     """``voxe edit --reg-weight -1`` had been refused as "regulariser_weight must be >= 0 ...", and ``voxe refine
     --sigma 0`` as "sigma must be positive; smoothness and smoothing_sigma non-negative ... got 0.0, 5.0, 0.5": the
-    settings they fill, no option the user typed (as a value that is no finite number now is). The configs' own rule
-    is said, by the option's name."""
+    settings they fill, no option the user typed (as a value that is no finite number now is), and ``--render-size 4``
+    / ``--batch-size 17`` as "render_size must be at least 8 px" / "batch_size must be at most 16". The configs' own
+    rule is said, by the option's name."""
     import voxe_core.cli.edit as edit_command
     import voxe_core.cli.refine as refine_command
 
@@ -174,6 +175,9 @@ def test_voxe_edit_and_refine_refuse_an_out_of_range_value_naming_the_option_typ
             (edit, "--reg-weight", "-1", "must be >= 0 and finite in float32, got -1.0"),
             (edit, "--lr", "0", "must be positive and finite in float32, got 0.0"),
             (edit, "--guidance-scale", "-7.5", "must be positive and finite in float32, got -7.5"),
+            (edit, "--render-size", "4", "must be at least 8 px, got 4"),
+            (edit, "--batch-size", "17", "must be at most 16 (the service's and the CLI's limit), got 17"),
+            (refine, "--render-size", "7", "must be at least 8 px, got 7"),
             (refine, "--sigma", "0", "must be positive and finite, got 0.0"),
             (refine, "--smoothness", "-1", "must be non-negative and at most 3.403e+38, got -1.0"),
             (refine, "--smoothing-sigma", "-0.5", "must be non-negative and finite, got -0.5"),

@@ -102,7 +102,8 @@ def cmd_edit(args) -> int:
     check_prompt_length(args.prompt, not args.no_view_words)  # (had been said after the model's load, a download maybe)
     check_device(args)  # before the grid is read: a device this machine lacks had been said only after it
     grid = load_grid(args.grid)
-    with said_by_option({"lr": "--lr", "regulariser_weight": "--reg-weight", "guidance_scale": "--guidance-scale"}):
+    with said_by_option({"lr": "--lr", "regulariser_weight": "--reg-weight", "guidance_scale": "--guidance-scale",
+                         "render_size": "--render-size", "batch_size": "--batch-size"}):
         config = edit_config(job_params(args), grid.kind, args.checkpoint_every)  # (before the model loads)
     config.render.fused = args.fused_marcher
     if config.regulariser in IMAGE_REGULARISERS and args.data is None:

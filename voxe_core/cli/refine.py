@@ -113,7 +113,7 @@ def cmd_refine(args) -> int:
     writable_folder(args.out / "renders")
     model = args.model or paper.ATTENTION_MODEL_ID
     with said_by_option({"smoothing_sigma": "--smoothing-sigma", "lr": "--lr", "tv_weight": "--tv-weight",
-                         "sigma": "--sigma", "smoothness": "--smoothness"}):
+                         "sigma": "--sigma", "smoothness": "--smoothness", "render_size": "--render-size"}):
         config = refine_config(job_params(args), model)
     for name in _preview_frames(args.preview_views, config.views):  # (a folder of a frame's name: the same)
         writable_file(args.out / "renders" / name)
