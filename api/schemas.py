@@ -105,7 +105,7 @@ class ReconstructionParams(Strict):
         "scene is processing fails, naming the count, when the processing decides a backbone that does not take "
         "it); the preset's otherwise"
     )
-    rays_per_step: int | None = Field(None, ge=1, le=1 << 20)
+    rays_per_step: int | None = Field(None, ge=1, le=paper.MAX_RAYS_PER_STEP)
     seed: int = Field(presets.SEED, ge=0, le=presets.MAX_SEED)
     backbone: Literal[presets.BACKBONE_CHOICES] = Field(
         presets.BACKBONE, description="relu_field: objects on a transparent background; scene: captured photos with a "
@@ -139,7 +139,7 @@ class RefineParams(Strict):
     render_size: int | None = Field(None, ge=paper.MIN_RENDER_SIZE, le=paper.MAX_RENDER_SIZE, description="attention render size (default: the edit's)")
     views: int = Field(paper.REFINE_VIEWS, ge=1, le=paper.MAX_REFINE_VIEWS,
                        description="random upper-hemisphere poses whose 2D attention maps are lifted")
-    rays_per_step: int = Field(paper.REFINE_RAYS_PER_STEP, ge=1, le=1 << 20)
+    rays_per_step: int = Field(paper.REFINE_RAYS_PER_STEP, ge=1, le=paper.MAX_RAYS_PER_STEP)
     edit_seeds: int = Field(paper.EDIT_SEEDS, ge=0, le=10_000_000,
                             description="voxels tied to the 'edit' terminal: every voxel with P_edit >= 0.992 max "
                                         "P_edit, topped up to this many by the highest P_edit, then only those more "

@@ -1345,6 +1345,26 @@ def test_a_count_too_large_is_refused_naming_its_option_and_its_limit(command, f
             capsys.readouterr().err
 
 
+@pytest.mark.parametrize("command", ["reconstruct", "mesh-to-grid", "refine"])
+def test_rays_per_step_past_the_services_bound_are_refused_before_the_system_kills_the_fit(command, capsys):
+    """``voxe reconstruct --rays 2000000000`` (4 images of 50 px) had been taken, where a job's rays_per_step stops at
+    2**20: its first step allocated past the machine's memory and the system's out-of-memory killer ended it (exit
+    137, nothing said). Every --rays takes the service's bound, refused by the option's name; the bound passes."""
+    from api.schemas import RefineParams, ReconstructionParams
+    from pydantic import ValidationError
+
+    too_many = 2**20 + 1
+    with pytest.raises(SystemExit) as exc:
+        main([command, "--rays", str(too_many)])
+    assert exc.value.code == 2 and (f"argument --rays: must be at most {2**20} (the service's limit), got {too_many}"
+                                    in capsys.readouterr().err)
+    assert _option_type(command, "--rays")(str(2**20)) == 2**20
+    for params in (ReconstructionParams, RefineParams):  # the service's own bound, the same
+        assert params(rays_per_step=2**20).rays_per_step == 2**20
+        with pytest.raises(ValidationError):
+            params(rays_per_step=too_many)
+
+
 def _integer_options() -> list[tuple[str, str]]:
     """Every (command, option) of ``voxe`` whose value is an integer: the counts, ``--seed`` and the counts the
     service bounds (``positive_int_at_most``)."""
@@ -1431,10 +1451,11 @@ def test_the_count_options_found_are_those_a_huge_value_had_failed(sphere_file, 
     """The options listed above include those that had failed unnamed; a count at the limit is taken."""
     options = _count_options()
     for option in (("turntable", "--frames"), ("turntable", "--size"), ("render", "--ring"), ("render", "--size"),
-                   ("export-mesh", "--resolution"), ("reconstruct", "--resolution"), ("reconstruct", "--rays"),
-                   ("reconstruct", "--iterations"), ("refine", "--rays"), ("evaluate", "--views"),
-                   ("mesh-to-grid", "--size"), ("convert-grid", "--margin")):
+                   ("export-mesh", "--resolution"), ("reconstruct", "--resolution"), ("reconstruct", "--iterations"),
+                   ("evaluate", "--views"), ("mesh-to-grid", "--size"), ("convert-grid", "--margin")):
         assert option in options
+    for option in (("reconstruct", "--rays"), ("refine", "--rays"), ("mesh-to-grid", "--rays")):  # (the service's
+        assert option in _integer_options()  # bound, tighter: test_rays_per_step_past_the_services_bound_...)
     assert main(["convert-grid", str(sphere_file), "--out", str(tmp_path / "c.safetensors"),
                  "--margin", "2147483647"]) == 0
 

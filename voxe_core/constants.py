@@ -112,6 +112,11 @@ largest step's renders hold (``MAX_BATCH_SIZE`` of ``MAX_RENDER_SIZE``² pixels)
 REFINE_RAYS_PER_STEP = 8192
 """Rays per attention-grid fitting step."""
 
+MAX_RAYS_PER_STEP = 1 << 20
+"""The most rays a reconstruction's or an attention-grid fit's step may take (the service's bound, and the CLI's
+``--rays``): ``voxe reconstruct --rays 2000000000`` had been taken, and the fit's first step killed by the system's
+out-of-memory killer (exit 137, nothing said)."""
+
 REFINE_BACKPROJECTION_STRIDE = 2
 """The back-projection start reads every n-th pixel row and column of each view (maps are a coarse lattice
 upsampled)."""

@@ -8,10 +8,10 @@ from pathlib import Path
 
 from voxe_core.cli.common import (
     EXIT_INTERRUPTED, add_device_argument, add_grid_output_arguments, check_device, finite_float, int_list, positive_int,
-    run_stage, seed, tensor_file, writable_file,
+    positive_int_at_most, run_stage, seed, tensor_file, writable_file,
 )
 from voxe_core.cli.reconstruct import recipe_params
-from voxe_core.constants import MESH_SUFFIXES
+from voxe_core.constants import MAX_RAYS_PER_STEP, MESH_SUFFIXES
 from voxe_core.presets import (
     DOWNSAMPLE, MESH_VIEW_SIZE, MESH_VIEWS, RECONSTRUCTION_PRESET, RECONSTRUCTION_PRESETS, SEED, ExportConfig,
     reconstruct_config,
@@ -53,7 +53,8 @@ def add_parsers(commands, common) -> None:
                     help="grid resolution (voxelize: default the preset's final one, as the service's; render: as "
                          "voxe reconstruct)")
     mg.add_argument("--iterations", type=int_list, default=None, metavar="N[,N...]", help="render route: as voxe reconstruct")
-    mg.add_argument("--rays", type=positive_int, default=None, help="render route: rays per step")
+    mg.add_argument("--rays", type=positive_int_at_most(MAX_RAYS_PER_STEP), default=None,
+                    help=f"render route: rays per step (at most {MAX_RAYS_PER_STEP})")
     mg.add_argument("--seed", type=seed, default=SEED)
     add_device_argument(mg)  # the render route's reconstruction (the voxeliser is CPU code)
     mg.set_defaults(run=cmd_mesh_to_grid)

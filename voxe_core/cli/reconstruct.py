@@ -8,8 +8,10 @@ from pathlib import Path
 
 from voxe_core.cli.common import (
     EXIT_INTERRUPTED, add_device_argument, add_grid_output_arguments, add_view_arguments, check_device, int_list,
-    load_views, one_or_list, positive_int, run_stage, seed, tensor_file, view_params, writable_file,
+    load_views, one_or_list, positive_int, positive_int_at_most, run_stage, seed, tensor_file, view_params,
+    writable_file,
 )
+from voxe_core.constants import MAX_RAYS_PER_STEP
 from voxe_core.presets import (
     BACKBONE,
     BACKBONE_CHOICES,
@@ -53,7 +55,8 @@ def add_recipe_arguments(parser: argparse.ArgumentParser) -> None:
                         help="final grid resolution (earlier stages scaled in proportion), or one per stage")
     parser.add_argument("--iterations", type=int_list, default=None, metavar="N[,N...]",
                         help="iterations of the final stage, or one per stage")
-    parser.add_argument("--rays", type=positive_int, default=None, help="rays per step")
+    parser.add_argument("--rays", type=positive_int_at_most(MAX_RAYS_PER_STEP), default=None,
+                        help=f"rays per step (at most {MAX_RAYS_PER_STEP})")
     parser.add_argument("--seed", type=seed, default=SEED)
 
 

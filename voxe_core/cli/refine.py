@@ -61,7 +61,8 @@ def add_parsers(commands, common) -> None:
                      help=f"render / attention-map size in pixels (at most {paper.MAX_RENDER_SIZE})")
     ref.add_argument("--views", type=positive_int_at_most(paper.MAX_REFINE_VIEWS), default=paper.REFINE_VIEWS,
                      help=f"random upper-hemisphere views for the 2D maps (at most {paper.MAX_REFINE_VIEWS})")
-    ref.add_argument("--rays", type=positive_int, default=paper.REFINE_RAYS_PER_STEP, help="rays per attention-grid step")
+    ref.add_argument("--rays", type=positive_int_at_most(paper.MAX_RAYS_PER_STEP), default=paper.REFINE_RAYS_PER_STEP,
+                     help=f"rays per attention-grid step (at most {paper.MAX_RAYS_PER_STEP})")
     ref.add_argument("--edit-seeds", type=non_negative_int, default=paper.EDIT_SEEDS,
                      help="voxels tied to the 'edit' terminal: every voxel with P_edit >= 0.992 max P_edit, topped "
                           "up to this many by the highest P_edit, then only those more likely edit than object "
