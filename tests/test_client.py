@@ -1343,6 +1343,43 @@ def test_a_download_over_a_file_keeps_its_permissions_and_a_symlink_stays_one(tm
     assert sorted(p.name for p in tmp_path.iterdir()) == ["latest.mp4", "runs"] and list(run.iterdir()) == [spot]
 
 
+def test_a_downloaded_artifact_is_on_the_disk_before_it_replaces_the_target(tmp_path, monkeypatch):
+    """The checked part file was renamed over the target without a flush: a power loss or kernel crash soon after
+    could leave the target empty or torn (XFS, Btrfs, ext4 writing a new file), the part gone and the download said
+    done, as voxe_core.files.replacing no longer leaves its files. It is flushed before the rename; a flush that finds
+    the write failed (EIO) fails the download, the earlier file kept."""
+    import errno
+    import os
+
+    data, synced, renamed = b"the turntable" * 100, set(), []
+    real_fsync, real_replace = os.fsync, os.replace
+
+    def fsync(fd):
+        real_fsync(fd)
+        found = os.fstat(fd)
+        synced.add((found.st_dev, found.st_ino, found.st_size))
+
+    def replace(source, target, *args, **kwargs):
+        found = os.stat(source)
+        renamed.append((found.st_dev, found.st_ino, found.st_size) in synced)
+        return real_replace(source, target, *args, **kwargs)
+
+    monkeypatch.setattr(os, "fsync", fsync)
+    monkeypatch.setattr(os, "replace", replace)
+    with Client(transport=httpx.MockTransport(_serving(data, "turntable.mp4"))) as client:
+        client.download("j1", "turntable.mp4", tmp_path / "turntable.mp4")
+        assert renamed == [True] and (tmp_path / "turntable.mp4").read_bytes() == data
+
+        def failing(fd):
+            raise OSError(errno.EIO, os.strerror(errno.EIO))
+
+        monkeypatch.setattr(os, "fsync", failing)
+        (tmp_path / "turntable.mp4").write_bytes(b"earlier")
+        with pytest.raises(OSError) as error:
+            client.download("j1", "turntable.mp4", tmp_path / "turntable.mp4")
+    assert error.value.errno == errno.EIO and (tmp_path / "turntable.mp4").read_bytes() == b"earlier"
+
+
 def test_a_416_to_a_kept_part_fetches_it_whole_and_an_error_names_the_part_kept(tmp_path, monkeypatch):
     """A 416 to a kept part's Range (bytes no head of the artifact) had failed the download and left the part, so
     every later call was answered 416 again: the part goes and the artifact is fetched whole, once: a 416 to bytes

@@ -26,7 +26,7 @@ from urllib.parse import quote
 import httpx
 
 from voxe_core.constants import TEXTURE_SUFFIXES
-from voxe_core.files import NAME_MAX, head_that_fits, take_the_mode_of
+from voxe_core.files import NAME_MAX, flush_to_disk, head_that_fits, take_the_mode_of
 from voxe_core.ply_header import read_ply_header
 
 DEFAULT_URL = "http://127.0.0.1:8000"
@@ -713,6 +713,7 @@ class Client:
                                            f"{expected['size']} bytes with sha256 {expected['sha256']}")
                     out.truncate(0)  # the earlier call's bytes were no head of it (a crash's zeroed tail): once, whole
                     earlier = 0
+                flush_to_disk(partial)  # (a power loss after the rename had been able to leave the target empty)
                 take_the_mode_of(target, partial)
                 os.replace(partial, target)
                 replaced = True  # a part file there now is another download's (a zero-byte artifact's had deleted it)
