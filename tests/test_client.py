@@ -3017,6 +3017,22 @@ def test_voxe_submit_sends_the_webhook_events_asked_for(api, tmp_path, monkeypat
         assert "webhook_events needs a webhook_url to send them to" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize("options, said", [
+    (["--mode", "local"], "--mode local needs --edit-word: the word(s) of the prompt naming the edit"),
+    (["--edit-word", "hat"], "--edit-word applies to local edits only (--mode local)"),
+    (["--webhook-event", "warning"], "--webhook-event needs a --webhook-url to send the events to")])
+def test_a_submit_whose_job_options_the_service_refuses_uploads_nothing(options, said, tmp_path, capsys):
+    """``voxe submit P --upload big.zip --mode local`` without --edit-word (or --edit-word without --mode local, or
+    --webhook-event without --webhook-url) had uploaded the whole scene, then been refused the job (422) and deleted
+    the scene again: options any job is refused for are said before the upload, which is not sent."""
+    from voxe_core.cli import main
+
+    (tmp_path / "plane.obj").write_text(PLANE_OBJ)
+    assert main(["submit", "a dog wearing a hat", "--upload", str(tmp_path / "plane.obj"), *options,
+                 "--api", "http://127.0.0.1:9"]) == 2  # (no service there: an upload tried is exit 3)
+    assert capsys.readouterr().err == f"voxe submit: error: {said}; nothing uploaded\n"
+
+
 @pytest.mark.parametrize("job_status, delete_status, said, exit_status", [
     (429, 204, "the scene s1 this command uploaded is deleted", 2),
     (429, 409, "the scene s1 this command uploaded stays, its deletion failed (DELETE /v1/scenes/s1: HTTP 409: busy)",

@@ -270,6 +270,8 @@ def cmd_submit(args) -> int:
         raise ValueError("--scene-name names the scene --upload makes; --scene is one uploaded, named already")
     if args.reconnect_for is not None and not args.wait:  # (it had been taken and ignored, as sweep's --poll was)
         raise ValueError("--reconnect-for sets how long --wait rides out a lost event stream: pass --wait too")
+    if args.upload is not None:
+        _check_job_options(args)
     with _client(args) as client:
         try:
             scene_id = args.scene
@@ -303,6 +305,18 @@ def cmd_submit(args) -> int:
             return 0
         except ServiceError as exc:
             return _service_error("submit", exc)
+
+
+def _check_job_options(args) -> None:
+    """ValueError for options the service refuses in any job (``POST /v1/jobs``' rules), said before ``--upload``
+    sends the scene: ``voxe submit P --upload big.zip --mode local`` (no --edit-word) had been refused once the whole
+    upload was stored, the scene then deleted again, to be uploaded once more with the option fixed."""
+    if args.mode == "local" and not args.edit_word:
+        raise ValueError("--mode local needs --edit-word: the word(s) of the prompt naming the edit; nothing uploaded")
+    if args.mode != "local" and args.edit_word:
+        raise ValueError("--edit-word applies to local edits only (--mode local); nothing uploaded")
+    if args.webhook_event is not None and args.webhook_url is None:
+        raise ValueError("--webhook-event needs a --webhook-url to send the events to; nothing uploaded")
 
 
 def _service_error(command: str, error) -> int:
