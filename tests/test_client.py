@@ -2663,6 +2663,40 @@ PLANE_PLY = ("ply\nformat ascii 1.0\ncomment TextureFile {texture}\nelement vert
              "-1 0 1 0.5 0.5\n3 0 1 2\n3 0 2 3\n")
 
 
+def test_a_mesh_naming_files_outside_its_folder_does_not_send_them(tmp_path):
+    """An OBJ or its .mtl naming a file out of the mesh's folder (``mtllib /home/me/.aws/credentials.mtl``,
+    ``map_Kd ../../private/photo.png``: a mesh downloaded from elsewhere) had had that file of the user's uploaded
+    to the service with it: such a name is looked for in the mesh's folder by its base name, as a Windows path's is,
+    else the mesh goes without it (said); a subfolder of the mesh's folder is found as written."""
+    from PIL import Image
+
+    from voxe_client.client import MissingCompanionWarning, obj_upload_files, ply_upload_files
+
+    private, mesh = tmp_path / "private", tmp_path / "downloads" / "mesh"
+    private.mkdir()
+    (mesh / "textures").mkdir(parents=True)
+    (private / "secret.mtl").write_text("newmtl a\nKd 1 0 0\n")
+    Image.new("RGB", (2, 2), GREEN).save(private / "photo.png")
+    obj = mesh / "plane.obj"
+    for library in (private / "secret.mtl", "../../private/secret.mtl"):
+        obj.write_text(f"mtllib {library}\n" + PLANE_OBJ)
+        with pytest.warns(MissingCompanionWarning, match="names the material library .* not found in"):
+            assert obj_upload_files(obj) == [obj]
+    (mesh / "plane.mtl").write_text("newmtl a\nmap_Kd ../../private/photo.png\n")
+    obj.write_text("mtllib plane.mtl\n" + PLANE_OBJ)
+    with pytest.warns(MissingCompanionWarning, match="names textures not found in"):
+        assert obj_upload_files(obj) == [obj, mesh / "plane.mtl"]
+    ply = mesh / "plane.ply"
+    ply.write_text(PLANE_PLY.format(texture=private / "photo.png"))
+    with pytest.warns(MissingCompanionWarning, match="not found in"):
+        assert ply_upload_files(ply) == [ply]
+    Image.new("RGB", (2, 2), GREEN).save(mesh / "textures" / "photo.png")
+    (mesh / "plane.mtl").write_text("newmtl a\nmap_Kd textures/photo.png\n")
+    assert obj_upload_files(obj) == [obj, mesh / "plane.mtl", mesh / "textures" / "photo.png"]
+    Image.new("RGB", (2, 2), GREEN).save(mesh / "photo.png")  # by its base name, beside the mesh: that one
+    assert ply_upload_files(ply) == [ply, mesh / "photo.png"]
+
+
 def test_a_ply_is_uploaded_with_the_texture_its_header_names_and_arrives_in_colour(api, tmp_path, capsys):
     """The .ply had been sent alone (and a texture given with it refused): a textured PLY arrived uncoloured. The
     image its ``comment TextureFile`` names goes with it, or ``--texture``'s instead; one not found is said."""

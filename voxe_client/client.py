@@ -894,11 +894,12 @@ def obj_upload_files(obj: Path, texture: str | os.PathLike | None = None) -> lis
     line names and the texture image that library's ``map_Kd`` lines name (its Kd colours alone when none).
 
     Names are read as trimesh (the service's reader) reads them, the rest of the line, and looked up as it does,
-    in the OBJ's folder as written, else by their base name; each is sent under its base name, where the service
-    looks. A library not found, or textures none of which is found, are a :class:`MissingCompanionWarning` naming
-    them, and the OBJ goes without them (as it went before they were looked for: uncoloured, or coloured by the
-    library's Kd alone); some textures found and others not, a FileNotFoundError (the one found would colour every
-    part); more textures than the one the service takes, or a ``texture`` it does not read, a ValueError."""
+    in the OBJ's folder as written (a name leading out of it by its base name only: :func:`_beside`), else by their
+    base name; each is sent under its base name, where the service looks. A library not found, or textures none of
+    which is found, are a :class:`MissingCompanionWarning` naming them, and the OBJ goes without them (as it went
+    before they were looked for: uncoloured, or coloured by the library's Kd alone); some textures found and others
+    not, a FileNotFoundError (the one found would colour every part); more textures than the one the service takes,
+    or a ``texture`` it does not read, a ValueError."""
     if texture is not None:
         return _given_texture(obj, texture)
     library_name = next(_keyed_values(obj, "mtllib"), None)
@@ -936,9 +937,13 @@ MESH_UPLOADS = {".obj": obj_upload_files, ".ply": ply_upload_files}
 
 def _beside(folder: Path, name: str) -> Path | None:
     """The file ``name`` (as an OBJ or .mtl writes it) in ``folder``, as written or by its base name; None if
-    neither is a file."""
-    for candidate in (folder / name, folder / PureWindowsPath(name).name):  # (a Windows path's base name too)
-        if candidate.is_file():
+    neither is a file. A name leading out of ``folder`` (absolute, or up through ``..``) is looked for by its base
+    name alone: a mesh from elsewhere naming ``mtllib /home/me/.aws/credentials`` or ``map_Kd ../../photo.jpg`` had
+    had that file of the user's sent to the service with it."""
+    written = os.path.normpath(name)
+    inside = not (os.path.isabs(written) or written == os.pardir or written.startswith(os.pardir + os.sep))
+    for candidate in ((folder / name,) if inside else ()) + (folder / PureWindowsPath(name).name,):  # (a Windows
+        if candidate.is_file():  # path's base name too)
             return candidate
     return None
 
