@@ -138,3 +138,12 @@ def test_metric_input_errors():
     with pytest.raises(ValueError, match="at least 11"):
         ssim(torch.zeros(10, 30, 3), torch.zeros(10, 30, 3))
     assert np.isfinite(ssim(torch.zeros(11, 11, 3), torch.zeros(11, 11, 3)))
+
+
+@pytest.mark.parametrize("shape", [(0, 0, 3), (4, 0, 3), (16, 16, 0), (2, 0, 16, 3)])
+def test_images_without_pixels_are_refused_naming_their_shape(shape):
+    # (PSNR of 0x0 images had been NaN, SSIM of images with no channel a RuntimeError from a reshape)
+    for metric in (psnr, ssim):
+        with pytest.raises(ValueError, match=rf"images have no pixels: shaped \({', '.join(map(str, shape))}\)"):
+            metric(torch.zeros(shape), torch.zeros(shape))
+    assert psnr(torch.zeros(0, 4, 4, 3), torch.zeros(0, 4, 4, 3)).shape == (0,)  # an empty batch stays an empty result

@@ -46,6 +46,8 @@ def _as_pair(a, b, peak: float | None) -> tuple[torch.Tensor, torch.Tensor, floa
         raise ValueError(f"images differ in shape: {tuple(a.shape)} vs {tuple(b.shape)}")
     if a.dim() < 3:
         raise ValueError(f"expected images shaped (..., H, W, C), got {tuple(a.shape)}")
+    if 0 in a.shape[-3:]:  # (PSNR had averaged no pixels into NaN, SSIM failed in a reshape naming no image)
+        raise ValueError(f"images have no pixels: shaped {tuple(a.shape)}, (..., H, W, C) with H, W and C at least 1")
     return a, b.to(a.device), scale
 
 
