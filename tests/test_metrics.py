@@ -147,3 +147,13 @@ def test_images_without_pixels_are_refused_naming_their_shape(shape):
         with pytest.raises(ValueError, match=rf"images have no pixels: shaped \({', '.join(map(str, shape))}\)"):
             metric(torch.zeros(shape), torch.zeros(shape))
     assert psnr(torch.zeros(0, 4, 4, 3), torch.zeros(0, 4, 4, 3)).shape == (0,)  # an empty batch stays an empty result
+
+
+@pytest.mark.parametrize("peak", [0, -1.0, float("nan"), float("inf"), "1"])
+def test_a_peak_that_is_no_positive_number_is_refused(peak):
+    # (max_val 0 had scored -inf dB, -1 the PSNR of a peak of 1, a NaN data_range a NaN SSIM)
+    a = smooth_noise(16, 16, 0)
+    for metric, name in ((psnr, "max_val"), (ssim, "data_range")):
+        with pytest.raises(ValueError, match=rf"max_val / data_range must be a positive number.*got {peak!r}"):
+            metric(a, a.flip(0), **{name: peak})
+    assert psnr(a, a.flip(0), max_val=2) == pytest.approx(psnr(a, a.flip(0)) + 20 * math.log10(2), abs=1e-4)

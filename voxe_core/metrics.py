@@ -19,6 +19,9 @@ excluded pixel leaks into the score. An image with nothing kept gives NaN.
 
 from __future__ import annotations
 
+import math
+import numbers
+
 import torch
 import torch.nn.functional as F
 
@@ -40,6 +43,10 @@ def _as_pair(a, b, peak: float | None) -> tuple[torch.Tensor, torch.Tensor, floa
     values up to 255: two uint8 images, black and white, scored -48 dB); bool images are 0 and 1, as
     ``export.to_uint8`` reads them; other integer images are values on the scale of an explicit peak, and refused
     on the default one, which says nothing of theirs."""
+    if peak is not None and not (isinstance(peak, numbers.Real) and math.isfinite(peak) and peak > 0):
+        # (a peak of 0 had scored -inf dB, -1 the PSNR of a peak of 1, NaN a NaN)
+        raise ValueError(f"max_val / data_range must be a positive number, the value standing for the peak, "
+                         f"got {peak!r}")
     scale = DEFAULT_PEAK if peak is None else peak
     a, b = (_on_scale(torch.as_tensor(image), scale, explicit=peak is not None) for image in (a, b))
     if a.shape != b.shape:
