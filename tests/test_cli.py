@@ -1898,6 +1898,28 @@ def test_render_ring(sphere_file, tmp_path):
     assert image[8, 8, 0] > 230 and image[8, 8, 1] < 25 and (image[0, 0] == 255).all()
 
 
+def test_a_grid_with_nan_features_is_refused_by_render_and_turntable_before_any_view(make_sphere_grid, tmp_path,
+                                                                                      capsys):
+    """A damaged grid file with NaN features had been rendered: its views written black where the NaN lies (the
+    sphere's front here), with exit 0, and --data's scores "PSNR nan dB" in a metrics.json holding NaN. As voxe
+    edit and reconstruct refuse such an initial grid, render and turntable now do, naming it, and write nothing."""
+    from test_data import make_synthetic, pose, write_png
+
+    grid = make_sphere_grid()
+    grid.features.data[12:20, 12:20, 24:32] = float("nan")  # facing the camera at z = 4
+    path = tmp_path / "damaged.safetensors"
+    grid.save(path)
+    write_png(tmp_path / "data" / "train" / "r_0.png")
+    make_synthetic(tmp_path / "data", [{"file_path": "./train/r_0", "transform_matrix": pose(translation=(0, 0, 4))}])
+    for command, output in ((["render", "--ring", "2", "--size", "16"], tmp_path / "ring"),
+                            (["render", "--data", str(tmp_path / "data"), "--split", "train"], tmp_path / "scored"),
+                            (["turntable", "--frames", "2", "--size", "16"], tmp_path / "spin.gif")):
+        assert main([command[0], str(path), *command[1:], "--out", str(output), "--device", "cpu", "--quiet"]) == 2
+        assert (f"the grid {path} has non-finite (NaN or infinite) features at 512 of its 32768 vertices, which the "
+                "renderer would carry into every view that sees them (a damaged grid file?)") in capsys.readouterr().err
+        assert not output.exists() or not any(output.iterdir())
+
+
 def test_ring_of_a_capture_grid_orbits_its_object_or_the_grid_named_by_centre_of(tmp_path, capsys):
     """A scene grid's ball 0.69 units off its frame's origin is in the middle of every ring view; with
     ``--centre-of`` a grid whose ball is at the origin, the ring looks at the origin and the ball moves off."""

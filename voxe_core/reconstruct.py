@@ -448,12 +448,14 @@ def camera_clear_rows(grid: VoxelGrid, cameras: Cameras, clearance: float) -> to
     return grid.rows_within(centres, clearance * centres.norm(dim=-1))
 
 
-def check_finite_grid(grid: VoxelGrid, carried_into: str) -> None:
-    """ValueError unless every feature of ``grid``, a run's initial grid, is finite, naming how many vertices are not
-    and what ``carried_into`` (its renders, a regulariser) would carry their NaN into: every step of the run."""
+def check_finite_grid(grid: VoxelGrid, carried_into: str, what: str = "the initial grid",
+                      where: str = "every step") -> None:
+    """ValueError unless every feature of ``grid`` (``what``: a run's initial grid) is finite, naming how many vertices
+    are not and what ``carried_into`` (its renders, a regulariser) would carry their NaN into (``where``: every step
+    of the run)."""
     if nonfinite := int((~grid.features.detach().isfinite()).any(-1).sum()):
-        raise ValueError(f"the initial grid has non-finite (NaN or infinite) features at {nonfinite} of its "
-                         f"{math.prod(grid.resolution)} vertices, which {carried_into} would carry into every step "
+        raise ValueError(f"{what} has non-finite (NaN or infinite) features at {nonfinite} of its "
+                         f"{math.prod(grid.resolution)} vertices, which {carried_into} would carry into {where} "
                          "(a damaged grid file?)")
 
 

@@ -75,6 +75,15 @@ def check_elevation(elevation: float) -> None:
         raise ValueError(f"--elevation must lie between -90 and 90 degrees, got {elevation:g}")
 
 
+def check_renderable(grid, path: Path) -> None:
+    """A grid with NaN or infinite features (a damaged file) is refused before any view is made: its views had been
+    written with black where the NaN lies, and ``--data``'s scores as "PSNR nan dB", a metrics.json no strict JSON
+    reader takes."""
+    from voxe_core.reconstruct import check_finite_grid
+
+    check_finite_grid(grid, "the renderer", what=f"the grid {path}", where="every view that sees them")
+
+
 def cmd_render(args) -> int:
     from voxe_core.backbones import load_grid
     from voxe_core.export import turntable_cameras
@@ -91,6 +100,7 @@ def cmd_render(args) -> int:
         check_elevation(args.elevation)
     writable_folder(args.out)
     grid = load_grid(args.grid)
+    check_renderable(grid, args.grid)
     scene = None
     if args.data is not None:
         scene = load_views(args)
@@ -198,6 +208,7 @@ def cmd_turntable(args) -> int:
     device = check_device(args)
     writable_file(args.out)  # (a folder not writable had failed after the render, imageio's traceback beside it)
     grid = load_grid(args.grid)
+    check_renderable(grid, args.grid)
     cameras = turntable_cameras(args.frames, args.elevation, args.size, centre=orbit_centre(args, grid))
     written = run_stage(  # each frame encoded as it is rendered (a long turntable had been held whole first)
         lambda cb: write_video(args.out, iter_views(grid, cameras, callbacks=cb, device=device), args.fps,
