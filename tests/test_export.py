@@ -327,6 +327,19 @@ def test_a_turntable_elevation_past_the_poles_is_refused_naming_the_range(sphere
                               atol=1e-6)
 
 
+@pytest.mark.parametrize("pole", [90.0, -90.0])
+def test_a_turntable_at_a_pole_turns_as_the_rings_beside_it_do(make_sphere_grid, pole):
+    """A ring at elevation ±90° (voxe turntable / render --ring --elevation 90) had been one pose repeated: look_at
+    gives a camera on the up axis no azimuth, so every frame was the same picture (an off-centre object did not turn
+    at all). Each pose at the pole now has its azimuth's roll, that of the ring 0.001° off the pole."""
+    at_pole, beside = turntable_cameras(4, pole, 16), turntable_cameras(4, pole - math.copysign(1e-3, pole), 16)
+    assert torch.allclose(at_pole.c2w[:, :3, :3], beside.c2w[:, :3, :3], atol=1e-4)
+    assert torch.allclose(at_pole.c2w[:, :3, :3].det(), torch.ones(4), atol=1e-6)
+    grid = make_sphere_grid(radius=0.3, center=(0.6, 0.0, 0.0))
+    frames = render_views(grid, at_pole)
+    assert not torch.equal(frames[0], frames[1]) and torch.allclose(frames[0], frames[2].flip(0, 1), atol=1e-4)
+
+
 def test_render_views_matches_render_image_and_shows_the_sphere(sphere_grid):
     cams = turntable_cameras(n_frames=3, elevation_deg=20.0, size=20)
     seen = []

@@ -605,6 +605,10 @@ def look_at(eye: torch.Tensor, target: torch.Tensor | None = None, up=(0.0, 0.0,
     return c2w.float()
 
 
+POLE_COSINE = 1e-6
+"""A pose whose elevation's cosine is below this sits at a pole for :func:`spherical_poses` (look_at's own test)."""
+
+
 def spherical_poses(
     elevation_deg: torch.Tensor, azimuth_deg: torch.Tensor, radius: float = NERF_SYNTHETIC_RADIUS,
     centre: torch.Tensor | None = None,
@@ -613,15 +617,23 @@ def spherical_poses(
 
     The centre is where the object sits (``VoxelGrid.orbit_centre``): a capture's object need not sit at its
     frame's origin, and an orbit about the origin would swing it across the image.
+
+    A pose at a pole (elevation ±90°, where ``look_at`` has no azimuth to go by) is turned by its azimuth as the
+    poses just off the pole are: a ring at 90° had been one pose repeated, a turntable of identical frames.
     """
     el, az = torch.deg2rad(torch.as_tensor(elevation_deg, dtype=torch.float32)), torch.deg2rad(
         torch.as_tensor(azimuth_deg, dtype=torch.float32)
     )
     eye = radius * torch.stack([el.cos() * az.cos(), el.cos() * az.sin(), el.sin()], dim=-1)
+    # At a pole, up is the image up the poses approaching it have, -sin(el)·(cos az, sin az) (z up elsewhere).
+    pole = (el.cos().abs() < POLE_COSINE).unsqueeze(-1)
+    below = -el.sin().sign()
+    pole_up = torch.stack([below * az.cos(), below * az.sin(), torch.zeros_like(below * az)], dim=-1)
+    up = torch.where(pole, pole_up, eye.new_tensor([0.0, 0.0, 1.0])).double().reshape(-1, 3)
     if centre is None:
-        return look_at(eye)
+        return look_at(eye, up=up)
     centre = torch.as_tensor(centre, dtype=torch.float64).reshape(3)
-    return look_at(eye.double() + centre, centre)  # float64: float32's sum had rounded a far centre's ring away
+    return look_at(eye.double() + centre, centre, up=up)  # float64: float32 had rounded a far centre's ring away
 
 
 def random_hemisphere_poses(
