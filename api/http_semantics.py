@@ -49,6 +49,7 @@ from fastapi.exception_handlers import http_exception_handler
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse, Response
 from fastapi.routing import APIRoute
+from starlette.datastructures import URL
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.requests import HTTPConnection
 from starlette.routing import Match, Mount
@@ -128,7 +129,10 @@ async def method_not_allowed(request: Request, exc: StarletteHTTPException) -> R
     allow = ", ".join(allowed_methods(request.app, route_path(request.scope)))
     if request.method == "OPTIONS":
         return Response(status_code=204, headers={"Allow": allow})
-    path = shorter(request.url.path, ID_SHOWN)  # (the client's, of any length)
+    # The path as the client sent it, under the proxy's prefix: a server that leaves the prefix out of the path
+    # (Starlette's TestClient, ASGI servers before the spec said otherwise) had it named without ("/v1/jobs").
+    sent = URL(scope={**request.scope, "path": root_of(request.scope) + route_path(request.scope)})  # (its %3F kept)
+    path = shorter(sent.path, ID_SHOWN)  # (the client's, of any length)
     return JSONResponse({"detail": f"method {request.method} is not allowed on {path}; allowed: {allow}"},
                         status_code=405, headers={"Allow": allow})
 

@@ -618,17 +618,28 @@ def test_a_405_shows_a_long_path_cut(client):
 
 
 def test_behind_a_proxy_prefix_the_405_still_names_the_paths_methods(client):
-    """``uvicorn --root-path /api``: the request path carries the prefix ("/api/v1/jobs"), the routes do not."""
+    """``uvicorn --root-path /api``: the request path carries the prefix ("/api/v1/jobs"), the routes do not. The
+    detail names the path as requested, with its prefix (it had said "/v1/jobs", a path the client never sent)."""
     import anyio
     import httpx
 
-    async def delete_jobs():
+    async def refuse():
         transport = httpx.ASGITransport(client.app, root_path="/api")
         async with httpx.AsyncClient(transport=transport, base_url="http://proxy") as proxied:
-            return await proxied.delete("/api/v1/jobs")
+            return await proxied.delete("/api/v1/jobs"), await proxied.post("/api/static/app.js")
 
-    refused = anyio.run(delete_jobs)
-    assert refused.status_code == 405 and refused.headers["allow"] == "GET, HEAD, OPTIONS, POST"
+    sent_with_prefix = anyio.run(refuse)  # uvicorn's shape: the path holds the prefix
+    with TestClient(client.app, root_path="/api") as proxied:  # a server that leaves the prefix out of the path
+        sent_without = proxied.delete("/v1/jobs"), proxied.post("/static/app.js")
+    for refused, static in (sent_with_prefix, sent_without):
+        assert refused.status_code == 405 and refused.headers["allow"] == "GET, HEAD, OPTIONS, POST"
+        assert refused.json()["detail"] == (
+            "method DELETE is not allowed on /api/v1/jobs; allowed: GET, HEAD, OPTIONS, POST")
+        assert static.status_code == 405 and static.headers["allow"] == "GET, HEAD, OPTIONS"
+        assert static.json()["detail"] == "method POST is not allowed on /api/static/app.js; allowed: GET, HEAD, OPTIONS"
+    with TestClient(client.app, root_path="/api") as proxied:  # an escaped "?" named as sent, not as a query
+        assert proxied.put("/v1/jobs/a%3Fb").json()["detail"] == (
+            "method PUT is not allowed on /api/v1/jobs/a%3Fb; allowed: GET, HEAD, OPTIONS")
 
 
 def test_each_proxy_prefix_reads_its_own_servers_in_the_document(client):
