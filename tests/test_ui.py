@@ -642,6 +642,46 @@ def test_a_scene_s_warnings_are_listed_under_the_upload_once_it_is_ready(live, b
             assert client.delete(f"/v1/scenes/{made}").status_code == 204
 
 
+def test_an_upload_s_error_stays_shown_while_an_earlier_upload_s_scene_is_watched(live, browser, tmp_path):
+    """The scene of an upload still processing is asked after every second, and each answer had cleared the error
+    beside the upload field: a second upload refused (a .zip that is none) or sent with nothing chosen had its reason
+    shown for a second, then wiped, the form saying nothing. The watch clears only a failure it said itself."""
+    svc, token, _archive = live
+    driver = browser
+    error = lambda: text(driver, '[data-error-for="upload"]')  # noqa: E731
+    set_key(driver, svc, token)
+    processing = json.dumps({"id": "x", "name": "tetra", "state": "processing"})
+    faults(driver, {"/v1/scenes/": {"method": "GET", "status": 200, "type": "application/json", "body": processing}})
+    try:
+        driver.find_element("id", "upload-files").send_keys(str(tetrahedron(tmp_path)))
+        driver.find_element("css selector", "#upload-form button").click()
+        wait_until(lambda: "stored as" in text(driver, "#upload-status"), 30, what="the upload stored")
+        first = re.search(r"stored as (\S+);", text(driver, "#upload-status"))[1]
+        wait_until(lambda: requested(driver, f"/v1/scenes/{first}"), 10, what="the scene asked after")
+        driver.find_element("id", "upload-files").clear()
+        (tmp_path / "bad.zip").write_text("not a zip")
+        driver.find_element("id", "upload-archive").send_keys(str(tmp_path / "bad.zip"))
+        driver.find_element("css selector", "#upload-form button").click()
+        wait_until(error, 30, what="the second upload refused")
+        refused = error()
+        assert refused.startswith("422: archive is not a readable zip file"), refused
+        polls = len(requested(driver, f"/v1/scenes/{first}"))
+        wait_until(lambda: len(requested(driver, f"/v1/scenes/{first}")) >= polls + 2, 10, what="two more polls")
+        assert error() == refused
+        driver.find_element("id", "upload-archive").clear()
+        driver.find_element("css selector", "#upload-form button").click()
+        assert error() == "choose a zip, the dataset's folder, or its files"
+        polls = len(requested(driver, f"/v1/scenes/{first}"))
+        wait_until(lambda: len(requested(driver, f"/v1/scenes/{first}")) >= polls + 2, 10, what="two more polls")
+        assert error() == "choose a zip, the dataset's folder, or its files"
+    finally:
+        faults(driver, {})
+    with httpx.Client(base_url=svc.base, headers={"Authorization": f"Bearer {token}"}) as client:
+        wait_until(lambda: client.get(f"/v1/scenes/{first}").json()["state"] != "processing", 120,
+                   what="the first scene processed", processes=svc.processes)
+        assert client.delete(f"/v1/scenes/{first}").status_code == 204  # the other tests expect their own only
+
+
 def test_an_upload_answered_with_no_scene_says_so(live, browser, tmp_path):
     """An upload answered 200 with no scene (a proxy's login page it was redirected to) is said beside the upload: its
     answer had been parsed unguarded, an unhandled rejection left the form at "100 % sent". Sent again, it keeps its

@@ -330,7 +330,9 @@ async function waitForScene(sceneId, status, signal) {
     let failure = null;
     try {
       const scene = await api(`${V1}/scenes/${encodeURIComponent(sceneId)}`, ANSWERS.scene, { signal });
-      showError("upload", "");
+      // Only what a watch of this scene said there (a failed poll): every answer had cleared the field, wiping a
+      // later upload's refusal a second after it was shown.
+      if (errorSlot("upload").textContent.startsWith(`checking scene ${sceneId}: `)) showError("upload", "");
       failures = 0;
       if (scene.state !== "processing") {
         if (ingesting === sceneId) ingesting = null;
