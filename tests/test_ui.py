@@ -1227,6 +1227,36 @@ def test_a_job_s_progress_reads_as_it_stands(live, browser):
     faults(driver, {})
 
 
+def test_every_progress_bar_has_a_name_a_screen_reader_says(live, browser):
+    """The job list's and the job page's progress bars had no accessible name (a <dt> beside one names nothing, nor
+    a column's header): a screen reader said "progress bar, 99 %", of which no one could tell. Each has one, as the
+    upload's has."""
+    svc, token, _archive = live
+    driver = browser
+    job = running_job("named", stage="edit", completed_stages=["reconstruct"], overall_progress=0.5)
+    answer = lambda body: {"status": 200, "type": "application/json", "body": body}  # noqa: E731
+
+    def names() -> list[str]:
+        nodes = driver.execute_cdp_cmd("Accessibility.getFullAXTree", {})["nodes"]
+        return [node.get("name", {}).get("value", "") for node in nodes
+                if not node.get("ignored") and node.get("role", {}).get("value") == "progressbar"]
+
+    set_key(driver, svc, token)
+    faults(driver, {"/v1/jobs?": answer(json.dumps({"items": [job], "total": 1})),
+                    "/v1/jobs/named$": answer(json.dumps(job)),
+                    "/v1/jobs/named/artifacts$": answer("[]"),
+                    "/v1/jobs/named/events": {"timeline": [], "recorded": 0}})
+    try:
+        driver.refresh()
+        wait_until(lambda: driver.find_elements("css selector", 'tr[data-job="named"]'), 10, what="the job listed")
+        assert names() == ["overall progress"]
+        go(driver, "#/jobs/named")
+        wait_until(lambda: text(driver, "#job-state") == "running", 10, what="the job page")
+        assert names() == ["stage progress", "overall progress"]
+    finally:
+        faults(driver, {})
+
+
 def test_a_requested_cancel_stays_shown_until_the_job_stops(live, browser):
     """A cancel requested is shown while the job runs its last iterations: the stream's progress snapshots say so
     (they had left cancel_requested out, and the first after a cancel had wiped its "(cancel requested)")."""

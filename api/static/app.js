@@ -547,6 +547,7 @@ function jobRow(job) {
   const progress = document.createElement("progress");
   progress.setAttribute("max", "1");
   progress.setAttribute("value", job.overall_progress);  // (a property refuses a value that is no number)
+  progress.setAttribute("aria-label", "overall progress");  // (a column's header names no cell's bar)
   const prompt = cell(job.prompt);
   prompt.className = "prompt";
   const state = cell(job.state);
