@@ -31,7 +31,7 @@ from api.services.jobs import request_cancel, rotate_webhook_secret
 from voxe_service.db import DATABASE_UNAVAILABLE, database_outage, run_migrations, session_scope
 from voxe_service.models import LOCAL_KEY_ID, PROCESSING, TERMINAL_STATES, ApiKey, Job, Scene, utcnow
 from voxe_service.scenes import fail_scene
-from voxe_service.settings import get_settings
+from voxe_service.settings import SettingsError, get_settings
 from voxe_service.storage import get_storage, scene_key
 
 
@@ -147,9 +147,13 @@ def update_key(session: Session, key: ApiKey, changes: dict) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     """The command's exit status; a database that is down or unreachable said in a line (it had ended in SQLAlchemy's
-    traceback, a page of it to read the cause out of)."""
+    traceback, a page of it to read the cause out of), as is a setting refused (VOXE_DEVICE=gpu had ended in a
+    traceback through get_settings)."""
     try:
         return _command(argv)
+    except SettingsError as exc:
+        print(f"python -m api.admin: {exc}", file=sys.stderr)
+        return 1
     except DATABASE_UNAVAILABLE as exc:
         if (why := database_outage(exc)) is None:
             raise

@@ -351,6 +351,25 @@ def test_an_admin_command_facing_a_database_that_is_down_says_so_without_a_trace
     assert "Traceback" not in err and "s3cret" not in err and len(err.splitlines()) == 1
 
 
+@pytest.mark.parametrize("command", [["list-keys"], ["create-key", "--name", "x"]])
+def test_an_admin_command_under_a_refused_setting_names_it_without_a_traceback(monkeypatch, capsys, command):
+    """VOXE_DEVICE=gpu (an environment the API and the workers refuse at start, naming the variable) had ended the
+    command in get_settings()'s traceback, the line naming the variable at its bottom."""
+    from api import admin
+    from service_helpers import reset_service_caches
+
+    monkeypatch.setenv("VOXE_DEVICE", "gpu")
+    reset_service_caches()
+    try:
+        assert admin.main(command) == 1
+    finally:
+        monkeypatch.delenv("VOXE_DEVICE")
+        reset_service_caches()
+    err = capsys.readouterr().err
+    assert err.startswith("python -m api.admin: bad service settings: VOXE_DEVICE='gpu': String should match "), err
+    assert "Traceback" not in err and len(err.splitlines()) == 1
+
+
 def test_the_readmes_admin_exit_codes_are_those_the_commands_exit_with(auth_client, capsys):
     """The README's admin section said nothing of them (a script calling create-key could not tell a bad name from a
     key not found); each it names is checked here."""
@@ -360,7 +379,8 @@ def test_the_readmes_admin_exit_codes_are_those_the_commands_exit_with(auth_clie
 
     readme = " ".join((Path(__file__).parent.parent / "README.md").read_text().split())
     assert ("Each admin command exits 0 when done; 1 when the key it names does not exist (update-key: or was "
-            "revoked) or the database cannot be reached (said in one line naming `VOXE_DATABASE_URL`); 2 for a usage "
+            "revoked) or the database cannot be reached (said in one line naming `VOXE_DATABASE_URL`) or a setting is "
+            "refused (said in one line naming the variable); 2 for a usage "
             "error (an unknown command or option, a value refused, such as a `--name` of control characters, or "
             "update-key with nothing to change), said before the database is touched.") in readme
     assert admin.main(["create-key", "--name", "exit codes"]) == 0
