@@ -396,6 +396,26 @@ def test_the_readme_names_every_server_the_deployment_runs():
     for said in (layout_row, deployment):
         assert [server for server in sorted(servers) if server not in said.lower()] == [], said
 
+def test_the_deployment_says_how_to_make_the_key_its_api_requires():
+    """The API image listens on every interface, so VOXE_AUTH=auto turns authentication on and every /v1 request is
+    a 401 until a key exists: the README's deployment paragraph and the compose file had not said so, nor how to make
+    one there (only a comment in api.Dockerfile did). The command they name runs in the api service's image."""
+    api_image = (ROOT / "docker/api.Dockerfile").read_text()
+    host = re.search(r"^ENV VOXE_HOST=(\S+)$", api_image, re.M)
+    assert host and Settings(host=host.group(1)).auth_enabled
+    assert re.search(r"^COPY api \./api$", api_image, re.M)  # api/admin.py
+    services = yaml.safe_load((ROOT / "docker-compose.yml").read_text())["services"]
+    assert "VOXE_AUTH" not in services["api"]["environment"] and services["api"]["build"]["dockerfile"] == (
+        "docker/api.Dockerfile")
+    readme = (ROOT / "README.md").read_text()
+    deployment = readme.split("\nDeployment with ", 1)[1].split("\n\n", 1)[0]
+    command = "docker compose exec api python -m api.admin create-key --name <who>"
+    for name, said in (("README.md", " ".join(deployment.split())), ("docker-compose.yml",
+                                                                    (ROOT / "docker-compose.yml").read_text())):
+        assert command in said, name
+    assert "authentication is on" in " ".join(deployment.split())
+
+
 @pytest.mark.parametrize("name", ["docker/worker.Dockerfile", ".ci/serve"])
 def test_the_workers_the_project_starts_consume_every_queue_a_task_is_sent_to(name):
     """A task routed to a queue no worker consumes waits there for ever, its job queued."""
