@@ -147,6 +147,18 @@ class _TooLarge(HTTPException):
         super().__init__(413, f"{limit.body} over the limit of {limit.max_bytes} bytes ({limit.setting})")
 
 
+def log_as_uvicorn() -> None:
+    """The API's own lines (``voxe.*``) to uvicorn's handler at its ``--log-level``: uvicorn configures only its own
+    loggers, so those below WARNING (authentication ON, ready, each webhook attempt) had gone nowhere, and the
+    warnings out bare. Nothing changes where logging is configured otherwise (a root handler, ``--log-config``)."""
+    voxe, served_by = logging.getLogger("voxe"), logging.getLogger("uvicorn")
+    if logging.getLogger().handlers or voxe.handlers or not served_by.handlers:
+        return
+    for handler in served_by.handlers:
+        voxe.addHandler(handler)
+    voxe.setLevel(logging.getLogger("uvicorn.error").getEffectiveLevel())
+
+
 def create_app(settings: Settings | None = None, migrate: bool = True) -> FastAPI:
     settings = settings or get_settings()
 
@@ -154,6 +166,7 @@ def create_app(settings: Settings | None = None, migrate: bool = True) -> FastAP
     async def lifespan(_app: FastAPI):
         from api.auth import check_startup
 
+        log_as_uvicorn()
         auth_line = check_startup(settings)  # refuses auth off on a reachable address before anything else
         (log.info if settings.auth_enabled else log.warning)("Vox-E API: %s", auth_line)
         if migrate:

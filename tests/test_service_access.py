@@ -615,6 +615,31 @@ def test_revoking_a_key_stops_its_scenes_ingest_already_running(auth_client, mic
         assert (scene.state, scene.error) == ("failed", f"its API key {key_id} was revoked while it was processing")
     assert storage.list(scene_key(scene_id)) == []
 
+@pytest.mark.parametrize("level, said", [("info", True), ("warning", False)])
+def test_the_api_under_uvicorn_says_authentication_is_on_at_its_log_level(tmp_path, level, said):
+    """uvicorn configures only its own loggers: the API's INFO lines had gone nowhere, so a deployment with
+    authentication on (the docker one) logged neither that nor the API's "ready" line, where one with it off warns."""
+    import os
+    import sys
+
+    import httpx
+    from service_helpers import Process, free_port, service_env, wait_until
+
+    port = free_port()
+    api = Process(f"api-{level}", [sys.executable, "-m", "uvicorn", "api.main:app", "--host", "127.0.0.1", "--port",
+                                   str(port), "--log-level", level],
+                  {**os.environ, **service_env(tmp_path, VOXE_AUTH="on")}, tmp_path)
+    try:
+        wait_until(lambda: httpx.get(f"http://127.0.0.1:{port}/healthz", timeout=2).status_code == 200, 120,
+                   what="the API to start", processes=[api])
+    finally:
+        api.stop()
+    log = api.log_path.read_text()
+    lines = ("INFO:     Vox-E API: authentication ON (VOXE_AUTH=on, host 127.0.0.1): every request needs an API key",
+             "INFO:     Vox-E API ready: SDS model tiny (smoke test, random weights)")
+    assert [line in log for line in lines] == [said, said], log
+
+
 # ------------------------------------------------------------------------------------------ the auth switch
 def test_auth_is_off_only_on_loopback(root, monkeypatch, caplog):  # noqa: F811
     from api.main import create_app
