@@ -416,6 +416,14 @@ def test_the_deployment_says_how_to_make_the_key_its_api_requires():
     assert "authentication is on" in " ".join(deployment.split())
 
 
+def test_the_deployments_api_records_the_device_its_workers_run_jobs_on():
+    """A job's device is the API's VOXE_DEVICE until a worker starts it (``GET /v1/jobs/{id}``, the web UI's job line):
+    compose had given the API cpu and the worker cuda, so every job waiting in the docker deployment said cpu."""
+    services = yaml.safe_load((ROOT / "docker-compose.yml").read_text())["services"]
+    devices = {name: services[name]["environment"].get("VOXE_DEVICE") for name in ("api", "worker")}
+    assert devices == {"api": "cuda", "worker": "cuda"}, devices
+
+
 @pytest.mark.parametrize("name", ["docker/worker.Dockerfile", ".ci/serve"])
 def test_the_workers_the_project_starts_consume_every_queue_a_task_is_sent_to(name):
     """A task routed to a queue no worker consumes waits there for ever, its job queued."""
