@@ -91,11 +91,17 @@ class UploadError(ValueError):
         self.status = status
 
 
-def _directory_extent(source: BinaryIO) -> tuple[int, int]:
+def _archive_named(name: str | None) -> str:
+    """The uploaded zip as a message names it: "archive 'bad.zip'" (its file name as sent), or "archive" when it
+    came without one."""
+    return f"archive {listed([name], width=ID_SHOWN)}" if name else "archive"
+
+
+def _directory_extent(source: BinaryIO, archive: str = "archive") -> tuple[int, int]:
     """(where a zip's central directory starts, its size in bytes): it ends where the end records begin (zip64's
     end record when its locator precedes the end record), so data before the archive (a self-extractor) does not
     matter. The end record is found as zipfile finds it: the file's last 22 bytes, else the last signature within
-    a comment's reach. UploadError (422) when there is none."""
+    a comment's reach. UploadError (422, naming ``archive``: :func:`_archive_named`) when there is none."""
     length = source.seek(0, os.SEEK_END)
     tail_size = min(length, _END_RECORD.size)
     source.seek(length - tail_size)
@@ -107,7 +113,7 @@ def _directory_extent(source: BinaryIO) -> tuple[int, int]:
         tail = source.read(tail_size)
     at = 0 if plain else tail.rfind(zipfile.stringEndArchive)
     if at < 0 or len(tail) - at < _END_RECORD.size:
-        raise UploadError("archive is not a readable zip file: no end of central directory record")
+        raise UploadError(f"{archive} is not a readable zip file: no end of central directory record")
     end, size = length - tail_size + at, _END_RECORD.unpack_from(tail, at)[1]
     zip64_at = end - 20 - _ZIP64_END_RECORD.size
     if zip64_at >= 0:
@@ -162,7 +168,7 @@ class _Budget:
         if self.files > self.max_files:
             raise UploadError(too_many_files(self.max_files), 413)
 
-    def check_directory(self, source: BinaryIO) -> None:
+    def check_directory(self, source: BinaryIO, archive: str = "archive") -> None:
         """413 for a zip whose central directory holds more records (or bytes) than ``max_files`` files explain.
 
         ``zipfile.ZipFile`` reads the whole directory and builds an object per record before any file can be
@@ -170,10 +176,10 @@ class _Budget:
         one at a time, where the end records (zip64's too) say they are, and whatever their count claims. The
         end records are read here, as zipfile finds them, rather than through zipfile's private reader, whose
         results changed meaning between Python releases (gh-139700). A directory that is not where they say is
-        the 422 zipfile would give.
+        the 422 zipfile would give, naming ``archive`` (:func:`_archive_named`).
         """
         most = _ENTRIES_PER_FILE * self.max_files + _ENTRIES_SLACK
-        start, size = _directory_extent(source)
+        start, size = _directory_extent(source, archive)
         if size > most * _DIRECTORY_BYTES_PER_ENTRY:
             raise UploadError(f"the archive's directory takes {size} bytes, more than {_DIRECTORY_BYTES_PER_ENTRY} "
                               f"per entry for the {most} entries VOXE_MAX_UPLOAD_FILES={self.max_files} allows", 413)
@@ -182,8 +188,8 @@ class _Budget:
             source.seek(start + position)
             record = source.read(_CENTRAL_RECORD.size)
             if len(record) < _CENTRAL_RECORD.size or record[:4] != zipfile.stringCentralDir:
-                raise UploadError("archive is not a readable zip file: its central directory is not where its end "
-                                  "record says")
+                raise UploadError(f"{archive} is not a readable zip file: its central directory is not where its "
+                                  "end record says")
             _, name, extra, comment = _CENTRAL_RECORD.unpack(record)
             position += _CENTRAL_RECORD.size + name + extra + comment
             entries += 1
@@ -306,14 +312,17 @@ def _is_folder(info: zipfile.ZipInfo) -> bool:
     return info.is_dir() or info.filename.endswith("\\") or (info.file_size == 0 and bool(marked))
 
 
-def extract_zip(source: BinaryIO, dest: Path, budget: _Budget) -> None:
-    """Check every entry's name and type first, then stream the entries out under the budget."""
-    budget.check_directory(source)
+def extract_zip(source: BinaryIO, dest: Path, budget: _Budget, name: str | None = None) -> None:
+    """Check every entry's name and type first, then stream the entries out under the budget. A zip that is none is
+    refused naming its file ``name`` (as sent), as a file sent loose is named: the 422 had said only "archive is not
+    a readable zip file"."""
+    label = _archive_named(name)
+    budget.check_directory(source, label)
     reader = _CountingReader(source)
     try:
         archive = zipfile.ZipFile(reader)
     except (zipfile.BadZipFile, OSError, ValueError, EOFError) as exc:
-        raise UploadError(f"archive is not a readable zip file: {exc}") from None
+        raise UploadError(f"{label} is not a readable zip file: {exc}") from None
     with archive:
         entries, seen, encoding = [], {}, _legacy_encoding(archive.infolist())
         for info in archive.infolist():
@@ -698,19 +707,20 @@ def stage_upload(
     max_image_pixels: int,
     mesh_shading: str | None = None,
     mesh_up_axis: str | None = None,
+    archive_name: str | None = None,
 ) -> StagedUpload:
     """Unpack, check and pack an upload in ``staging`` (a :func:`staging_folder`, holding the packed archive).
 
     ``mesh_shading`` (a mesh upload's ``voxe_core.mesh_input.shade_mesh`` mode; default "auto") and
     ``mesh_up_axis`` (its file's up axis, as ``load_mesh`` takes it; default "y") are refused for a
-    dataset of images."""
+    dataset of images. ``archive_name``: the zip's file name as sent, which its refusals name."""
     if (archive is None) == (not files):
         raise UploadError("send either one zip 'archive' or the dataset's 'files' (with the transforms json)")
     budget = _Budget(max_bytes, max_files, max_ratio)
     unpacked = staging / "data"
     unpacked.mkdir()
     if archive is not None:
-        extract_zip(archive, unpacked, budget)
+        extract_zip(archive, unpacked, budget, archive_name)
     else:
         save_files(files, unpacked, budget)
     check_image_pixels(unpacked, max_image_pixels)

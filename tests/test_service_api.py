@@ -840,6 +840,19 @@ def test_bad_upload_is_422_and_leaves_nothing(client, dataset, root, case, expec
     assert stored_files(root) == [] and staged(root) == []
 
 
+def test_a_zip_that_is_none_is_refused_naming_the_file_sent(client, dataset, root):
+    """An upload's zip that cannot be read is named by its file name as sent, as a file sent loose is: the 422 had
+    said only "archive is not a readable zip file", whichever file of several a user had picked."""
+    misplaced = _zip_bytes(_dataset_entries(dataset)).replace(zipfile.stringCentralDir, b"XX\x01\x02")
+    for body, reason in ((b"this is not a zip", "no end of central directory record"),
+                         (misplaced, "its central directory is not where its end record says")):
+        response = client.post("/v1/scenes", files={"archive": ("bad.zip", body, "application/zip")})
+        assert response.status_code == 422, response.text
+        assert response.json()["detail"] == f"archive 'bad.zip' is not a readable zip file: {reason}"
+    assert client.get("/v1/scenes").json()["total"] == 0
+    assert stored_files(root) == [] and staged(root) == []
+
+
 def test_a_transforms_json_written_on_windows_uploads(client, dataset, root):
     """The upload check reads its file_path's '\\' separators as '/', as the loader does (and instant-ngp)."""
     meta = json.loads((dataset / "transforms_train.json").read_text())

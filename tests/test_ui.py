@@ -664,7 +664,7 @@ def test_an_upload_s_error_stays_shown_while_an_earlier_upload_s_scene_is_watche
         driver.find_element("css selector", "#upload-form button").click()
         wait_until(error, 30, what="the second upload refused")
         refused = error()
-        assert refused.startswith("422: archive is not a readable zip file"), refused
+        assert refused.startswith("422: archive 'bad.zip' is not a readable zip file"), refused
         polls = len(requested(driver, f"/v1/scenes/{first}"))
         wait_until(lambda: len(requested(driver, f"/v1/scenes/{first}")) >= polls + 2, 10, what="two more polls")
         assert error() == refused

@@ -118,7 +118,7 @@ def create_scene(*, session: Session, settings: Settings, storage: Storage, queu
             staged = stage_upload(
                 staging, upload.archive, upload.files, settings.max_extracted_bytes, settings.max_upload_files,
                 settings.validation_downsample, settings.max_compression_ratio, settings.max_image_pixels,
-                upload.mesh_shading, upload.mesh_up_axis,
+                upload.mesh_shading, upload.mesh_up_axis, upload.archive_name,
             )
         except UploadError as exc:
             raise HTTPException(exc.status, str(exc)) from None
