@@ -9,6 +9,8 @@ import json
 import os
 import re
 import shutil
+import socket
+import struct
 import subprocess
 import sys
 import tempfile
@@ -1153,6 +1155,75 @@ def test_an_upload_s_progress_is_not_read_out_at_every_step(live, browser):
         wait_until(lambda: client.get(f"/v1/scenes/{scene_id}").json()["state"] != "processing", 60,
                    what="the scene's ingest", processes=svc.processes)
         assert client.delete(f"/v1/scenes/{scene_id}").status_code == 204  # the other tests expect their own only
+
+
+def _cutting_proxy(port: int, cut_after: int) -> tuple[int, socket.socket]:
+    """(its port, its listening socket: close it to stop) A TCP proxy to 127.0.0.1:``port`` that reads a POST
+    /v1/scenes slowly (an upload's progress is seen) and resets both its connections once ``cut_after`` bytes of it
+    have passed: a network failing mid-upload."""
+    listener = socket.create_server(("127.0.0.1", 0))
+
+    def pipe(source: socket.socket, sink: socket.socket, watched: bool) -> None:
+        tail, passed = b"", None  # (bytes of the upload passed, once its request line is seen)
+        try:
+            while data := source.recv(64 << 10):
+                if watched and passed is None and b"POST /v1/scenes" in tail + data:
+                    passed = 0
+                tail = data[-32:]
+                if passed is not None:
+                    passed += len(data)
+                    time.sleep(0.02)
+                    if passed > cut_after:
+                        for end in (source, sink):
+                            end.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))
+                        return
+                sink.sendall(data)
+        except OSError:
+            pass
+        finally:
+            for end in (source, sink):
+                end.close()
+
+    def serve() -> None:
+        while True:
+            try:
+                client, _ = listener.accept()
+            except OSError:  # closed: the test is over
+                return
+            upstream = socket.create_connection(("127.0.0.1", port))
+            threading.Thread(target=pipe, args=(client, upstream, True), daemon=True).start()
+            threading.Thread(target=pipe, args=(upstream, client, False), daemon=True).start()
+
+    threading.Thread(target=serve, daemon=True).start()
+    return listener.getsockname()[1], listener
+
+
+def test_an_upload_cut_off_by_the_network_leaves_no_progress_shown(live, browser, tmp_path):
+    """An upload whose connection is reset mid-way (a network error) hides its progress bar with the failure said:
+    the bar had stayed at its share sent beside "the upload failed", as if the upload were still going on."""
+    svc, token, _archive = live
+    driver = browser
+    port, listener = _cutting_proxy(int(urlparse(svc.base).port), 4 << 20)
+    big = tmp_path / "big.bin"
+    big.write_bytes(os.urandom(32 << 20))
+    try:
+        driver.get(f"http://127.0.0.1:{port}/")
+        use_key(driver, token)
+        wait_until(lambda: "key set" in text(driver, "#key-state"), 10, what="the key to be kept")
+        driver.execute_script("window.shares = [];"
+                              "new MutationObserver(() => shares.push(document.querySelector('#upload-progress').value))"
+                              ".observe(document.querySelector('#upload-progress'), { attributes: true });")
+        driver.find_element("id", "upload-files").send_keys(str(big))
+        driver.find_element("css selector", "#upload-form button").click()
+        wait_until(lambda: text(driver, '[data-error-for="upload"]'), 60, what="the upload's failure")
+        assert text(driver, '[data-error-for="upload"]') == "the upload failed (network error)"
+        shares = driver.execute_script("return window.shares")
+        assert any(0 < share < 1 for share in shares), shares  # (it failed mid-way)
+        assert driver.execute_script("return document.querySelector('#upload-progress').hidden")
+        assert driver.find_element("css selector", "#upload-form button").is_enabled()
+    finally:
+        listener.close()
+    driver.get(f"{svc.base}/")
 
 
 def test_a_keyboard_s_focus_follows_the_page_it_opens(live, browser):

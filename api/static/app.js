@@ -289,7 +289,11 @@ function initUpload() {
       bar.setAttribute("aria-valuetext", sent.textContent);
     };
     xhr.onloadend = () => { button.disabled = false; sent.textContent = ""; };
-    xhr.onerror = () => showError("upload", "the upload failed (network error)");
+    // The bar goes with the upload it showed: left at its share sent, it had read as an upload still going on.
+    xhr.onerror = () => {
+      bar.hidden = true;
+      showError("upload", "the upload failed (network error)");
+    };
     xhr.onload = async () => {
       if (xhr.status >= 400) {
         const error = apiError(xhr.status, xhr.statusText, xhr.getResponseHeader("Content-Type"), xhr.responseText,
