@@ -1226,6 +1226,38 @@ def test_an_upload_cut_off_by_the_network_leaves_no_progress_shown(live, browser
     driver.get(f"{svc.base}/")
 
 
+def test_an_edit_with_no_scene_to_edit_says_what_to_do_and_sends_nothing(live, browser):
+    """An edit submitted while the Scene field offers none is refused beside it, saying why and what to do: it had
+    been sent, and the API's 422 shown there, "String should have at least 1 character (scene_id)"."""
+    svc, token, _archive = live
+    driver = browser
+    error = lambda: text(driver, '[data-error-for="scene_id"]')  # noqa: E731
+    answer = lambda scenes: {"status": 200, "type": "application/json",  # noqa: E731
+                             "body": json.dumps({"items": scenes, "total": len(scenes)})}
+    down = {"status": 503, "statusText": "Service Unavailable", "type": "text/plain", "body": "down"}
+    set_key(driver, svc, token)
+    try:
+        for scenes, said in (
+                (down, "the scenes have not loaded yet: wait for them, or reload the page"),
+                (answer([]), "no scene to edit: upload one (1. Upload a scene), then choose it here once it is ready"),
+                (answer([{"id": "made", "name": "tetra", "state": "processing"},
+                         {"id": "broken", "name": "bad", "state": "failed"}]),
+                 "no scene is ready yet: wait until the one uploaded is processed (it is offered here once it is "
+                 "ready)")):
+            faults(driver, {"/v1/scenes?": scenes, "/v1/jobs?": answer([])})
+            driver.refresh()
+            wait_until(lambda: requested(driver, "/v1/jobs?"), 10, what="the scenes, then the jobs, asked for")
+            driver.find_element("id", "job-prompt").clear()
+            driver.find_element("id", "job-prompt").send_keys("a mic made of gold")
+            driver.find_element("css selector", "#job-form button").click()
+            wait_until(error, 10, what="the edit refused")
+            assert error() == said
+            assert not requested(driver, "/v1/jobs", "POST")
+    finally:
+        faults(driver, {})
+    driver.refresh()
+
+
 def test_a_keyboard_s_focus_follows_the_page_it_opens(live, browser):
     """A job opened from the list with the keyboard (Enter on its link), and the list opened again ("← all jobs", or
     Back from an artifact's link), take the focus with them: it had been dropped with the page hidden, the next Tab

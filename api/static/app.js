@@ -413,9 +413,16 @@ async function allScenes(signal) {
   return scenes;
 }
 
+/** Why the Scene field offers none, said when an edit is submitted without one: the API's 422 had said "String
+ * should have at least 1 character (scene_id)". */
+let noSceneReason = "the scenes have not loaded yet: wait for them, or reload the page";
+
 async function loadScenes(signal, selected) {
   const scenes = await allScenes(signal);
   const ready = scenes.filter((s) => s.state === "ready");
+  noSceneReason = scenes.some((s) => s.state === "processing")
+    ? "no scene is ready yet: wait until the one uploaded is processed (it is offered here once it is ready)"
+    : "no scene to edit: upload one (1. Upload a scene), then choose it here once it is ready";
   const option = (s) => new Option(`${s.name} (${s.id})`, s.id);
   const jobScene = $("#job-scene");
   const keep = selected || jobScene.value;
@@ -468,6 +475,10 @@ function jobRequest(form) {
     }
   }
   let readable = true;
+  if (!$("#job-scene").value) {
+    showError("scene_id", noSceneReason);
+    readable = false;
+  }
   for (const [field, id] of [["iterations", "#job-iterations"], ["render_size", "#job-render-size"]]) {
     const input = $(id);
     if (input.validity.badInput) {  // its value reads "" as if left empty: the paper's value would run instead
