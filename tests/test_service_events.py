@@ -196,7 +196,7 @@ def test_a_webhook_to_a_private_address_is_refused_naming_the_rule(live, url, ru
     response = client.post("/v1/jobs", json={"scene_id": scene["id"], "prompt": "a mic made of wood",
                                              "webhook_url": url})
     assert response.status_code == 422, response.text
-    assert f"a {rule} address" in response.json()["detail"] and "VOXE_WEBHOOK_ALLOW_NETWORKS" in response.json()["detail"]
+    assert f"{'an' if rule == 'unspecified' else 'a'} {rule} address" in response.json()["detail"] and "VOXE_WEBHOOK_ALLOW_NETWORKS" in response.json()["detail"]
     assert client.get("/v1/jobs").json()["total"] == before  # nothing recorded
 
 

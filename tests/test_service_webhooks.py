@@ -1134,9 +1134,10 @@ def test_webhook_events_need_a_url_and_name_known_kinds(client):
     assert response.status_code == 422 and "webhook_url" in response.text
     response = test_client.post("/v1/jobs", json={**body, "webhook_url": "http://[::1"})
     assert response.status_code == 422 and "webhook_url 'http://[::1' is not a valid URL" in response.text
-    for address, rule in (("100.64.1.2", "non-public"), ("[2002:a01:203::1]", "private (as 10.1.2.3)")):
+    for address, rule in (("100.64.1.2", "a non-public"), ("[2002:a01:203::1]", "a private (as 10.1.2.3)"),
+                          ("0.0.0.0", "an unspecified")):  # had been "a unspecified address"
         response = test_client.post("/v1/jobs", json={**body, "webhook_url": f"http://{address}/h"})
-        assert response.status_code == 422 and f"a {rule} address" in response.json()["detail"], address
+        assert response.status_code == 422 and f"{rule} address:" in response.json()["detail"], address
     response = test_client.post("/v1/jobs", json={**body, "webhook_url": "http://1.1.1.1:0/h"})  # had been 201
     assert response.status_code == 422 and "names port 0, where nothing can listen" in response.json()["detail"]
     for url, problem in (("http://1.1.1.1:65536/h", "Port out of range 0-65535"),  # had blamed the name lookup

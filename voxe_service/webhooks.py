@@ -234,8 +234,9 @@ def allowed_addresses(host: str, port: int, allow_networks: list[ipaddress._Base
         address = ipaddress.ip_address(info[4][0].split("%")[0])
         if not any(address in network for network in allow_networks) and (rule := refused_rule(address)):
             raise TargetRefused(
-                f"webhook_url host {host!r} resolves to {address}, a {rule} address: webhooks go to "
-                "public addresses only (an operator can allow networks with VOXE_WEBHOOK_ALLOW_NETWORKS)")
+                f"webhook_url host {host!r} resolves to {address}, {'an' if rule[0] in 'aeiou' else 'a'} {rule} "
+                "address: webhooks go to public addresses only (an operator can allow networks with "
+                "VOXE_WEBHOOK_ALLOW_NETWORKS)")
         addresses.append(info[4][0])
     return list(dict.fromkeys(addresses))
 
