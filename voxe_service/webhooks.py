@@ -221,10 +221,13 @@ def check_target(url: str, allow_networks: list[ipaddress._BaseNetwork], timeout
 
 
 def allowed_addresses(host: str, port: int, allow_networks: list[ipaddress._BaseNetwork]) -> list[str]:
-    """Every address ``host`` resolves to, once: :class:`TargetRefused` naming the first that a webhook may not go
-    to (``refused_rule``) unless ``allow_networks`` holds it, or a name that cannot be looked up at all (e.g. a
-    label over 63 characters). A resolver that fails (``socket.gaierror``, an OSError: no such name, or none
-    reachable for now) refuses nothing: the name may resolve at the next attempt."""
+    """Every address ``host`` resolves to, once: :class:`TargetRefused` naming the kind of the first that a webhook
+    may not go to (``refused_rule``) unless ``allow_networks`` holds it, or a name that cannot be looked up at all
+    (e.g. a label over 63 characters). A resolver that fails (``socket.gaierror``, an OSError: no such name, or none
+    reachable for now) refuses nothing: the name may resolve at the next attempt.
+
+    The refusal's message (a job's 422, a delivery's ``last_error``) names no address, its ``logged`` form does: any
+    key holder could otherwise map the internal names the service's resolver knows ("resolves to 10.0.0.5")."""
     try:
         infos = socket.getaddrinfo(host, port, proto=socket.IPPROTO_TCP)
     except ValueError as exc:
@@ -233,12 +236,18 @@ def allowed_addresses(host: str, port: int, allow_networks: list[ipaddress._Base
     for info in infos:
         address = ipaddress.ip_address(info[4][0].split("%")[0])
         if not any(address in network for network in allow_networks) and (rule := refused_rule(address)):
-            raise TargetRefused(
-                f"webhook_url host {host!r} resolves to {address}, {'an' if rule[0] in 'aeiou' else 'a'} {rule} "
-                "address: webhooks go to public addresses only (an operator can allow networks with "
-                "VOXE_WEBHOOK_ALLOW_NETWORKS)")
+            kind = rule.partition(" (as ")[0]  # ("private (as 10.1.2.3)": the address it carries is the log's)
+            why = ("address: webhooks go to public addresses only (an operator can allow networks with "
+                   "VOXE_WEBHOOK_ALLOW_NETWORKS)")
+            raise TargetRefused(f"webhook_url host {host!r} resolves to {_a(kind)} {why}",
+                                f"webhook_url host {host!r} resolves to {address}, {_a(rule)} {why}")
         addresses.append(info[4][0])
     return list(dict.fromkeys(addresses))
+
+
+def _a(word: str) -> str:
+    """``word`` after its article: "an unspecified", "a private"."""
+    return ("an " if word[0] in "aeiou" else "a ") + word
 
 
 class LookupTimedOut(Exception):

@@ -130,6 +130,8 @@ def check_webhook(*, settings: Settings, body: JobCreate) -> None:
     try:
         webhooks.check_target(body.webhook_url, settings.webhook_networks, settings.webhook_timeout_s)
     except webhooks.TargetRefused as exc:
+        if exc.logged != str(exc):  # what the answer keeps from its key holder, the address refused: the operator's
+            log.info("a job's webhook refused: %s", exc.logged)
         raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, str(exc)) from None
     except webhooks.LookupSlotsBusy:  # other hosts' lookups stuck on their resolvers: had been a 422 "did not resolve"
         raise try_again_soon(
