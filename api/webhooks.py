@@ -8,7 +8,8 @@ never answers nor a key whose jobs each name a receiver of their own can hold th
 failed attempt (an error, a timeout, a non-2xx) is retried after ``VOXE_WEBHOOK_BACKOFF_S`` doubling per attempt
 (or the longer wait a 429's or 503's ``Retry-After`` asks, at most ``VOXE_WEBHOOK_MAX_BACKOFF_S``),
 until ``VOXE_WEBHOOK_RETRY_FOR_S`` after the event (the last try at that time); then the delivery is ``failed`` with
-the last error, as it is at once when the receiver answered 410 Gone (it says it is gone for good). Claims are
+the last error, as it is at once when the receiver answered 410 Gone (it says it is gone for good), and so are the
+job's other deliveries to that URL, pending or later, never sent. Claims are
 conditional updates, so several API processes may send side by side without sending one attempt twice. The pool and
 the shares are this process's own: N API processes hold up to N times as many.
 """
@@ -28,7 +29,7 @@ from voxe_service.models import ApiKey, Job, WebhookDelivery, utcnow
 from voxe_service.settings import Settings
 from voxe_service.webhooks import (
     DELIVERED, GAVE_UP, GONE, PENDING, Attempt, Claim, InFlight, Shares, TargetRefused, attempt, claim_due, retry_at,
-    webhook_client,
+    stop_after_gone, webhook_client,
 )
 
 log = logging.getLogger("voxe.webhooks")
@@ -148,3 +149,5 @@ class WebhookSender:
         with session_scope() as session:
             session.execute(update(WebhookDelivery).where(WebhookDelivery.id == delivery.id,
                                                           WebhookDelivery.state == PENDING).values(**values))
+            if status == GONE:  # the receiver stops the job's deliveries, not this one only
+                stop_after_gone(session, delivery)

@@ -234,6 +234,61 @@ def test_a_receiver_answering_410_gone_is_not_tried_again(client):
     assert len(gone.requests) == 1
 
 
+@pytest.mark.parametrize("client", [{**SLOW_RETRIES, "VOXE_WEBHOOK_CONCURRENCY": "1"}], indirect=True)
+def test_a_receiver_answering_410_gone_is_sent_none_of_the_jobs_later_deliveries(client):
+    """A 410 Gone says the receiver is gone for good: it had failed that one delivery only, and the job's other
+    deliveries to it, pending or of later events, were still sent there, each answered 410. They fail unsent, their
+    last_error naming the delivery answered 410; another job's deliveries to the same receiver still go."""
+    from api.webhooks import WebhookSender
+    from voxe_service.db import session_scope
+    from voxe_service.jobs import record_event
+    from voxe_service.settings import get_settings
+
+    test_client, scene = client
+    gone = WebhookReceiver(status=410)
+
+    def send_once() -> int:  # one attempt at most (VOXE_WEBHOOK_CONCURRENCY 1), awaited
+        sender = WebhookSender(get_settings())
+        try:
+            return sender.send_due()
+        finally:
+            sender._pool.shutdown(wait=True)
+            sender.stop()
+
+    def new_job() -> str:
+        job = test_client.post("/v1/jobs", json={"scene_id": scene["id"], "prompt": "a mic made of gold",
+                                                 "webhook_url": gone.url,
+                                                 "webhook_events": ["stage_started", "canceled"]}).json()
+        test_client.post(f"/v1/jobs/{job['id']}/cancel")
+        return job["id"]
+
+    try:
+        job_id = new_job()
+        with session_scope() as session:
+            for stage in ("reconstruct", "edit"):
+                record_event(session, job_id, "stage_started", stage=stage)
+        assert send_once() == 1
+        first, *others = sorted(test_client.get(f"/v1/jobs/{job_id}/webhooks").json(), key=lambda d: d["attempts"],
+                                reverse=True)
+        assert first["state"] == "failed" and first["last_status"] == 410 and len(others) == 2, first
+        told = (f"not sent: the receiver answered 410 Gone to this job's delivery {first['id']} (gone for good), so "
+                "none of the job's deliveries go to it any more")
+        assert [(d["state"], d["attempts"], d["last_status"], d["last_error"], d["next_attempt_at"]) for d in others] \
+            == [("failed", 0, None, told, None)] * 2, others
+        with session_scope() as session:  # a later event of the job: written failed, never sent
+            record_event(session, job_id, "stage_started", stage="export")
+        later = [d for d in test_client.get(f"/v1/jobs/{job_id}/webhooks").json() if d["id"] not in
+                 {first["id"], *(d["id"] for d in others)}]
+        assert [(d["state"], d["attempts"], d["last_error"]) for d in later] == [("failed", 0, told)], later
+        assert send_once() == 0 and len(gone.requests) == 1
+        other_job = new_job()  # the 410 stops that job's deliveries: another job's still go
+        assert send_once() == 1 and len(gone.requests) == 2
+        [other] = test_client.get(f"/v1/jobs/{other_job}/webhooks").json()
+        assert other["last_status"] == 410, other
+    finally:
+        gone.close()
+
+
 @pytest.mark.parametrize("client", [SLOW_RETRIES], indirect=True)
 @pytest.mark.parametrize(("status", "retry_after", "waited"), [
     (429, "30", 30), (503, "in 45 s", 45), (503, "7200", 60), (429, "1", 5)])

@@ -468,11 +468,33 @@ def enqueue(session: Session, job_id: str, event) -> None:
     }
     if event.kind in ("artifact", "preview"):
         body["data"]["artifact_url"] = f"/v1/jobs/{job_id}/artifacts/{event.detail}"
+    gone = session.scalar(select(WebhookDelivery.id).where(WebhookDelivery.job_id == job_id,
+                                                           WebhookDelivery.url == hook.webhook_url,
+                                                           WebhookDelivery.last_status == GONE).limit(1))
     session.add(WebhookDelivery(
         id=f"msg_{secrets.token_hex(16)}", job_id=job_id, event_id=event.id, event_type=body["type"],
         url=hook.webhook_url, origin=webhook_origin(hook.webhook_url), payload=json.dumps(body, separators=(",", ":")),
-        state=PENDING, attempts=0, next_attempt_at=utcnow(), created_at=utcnow(),
+        state=PENDING if gone is None else GAVE_UP, attempts=0, next_attempt_at=utcnow() if gone is None else None,
+        last_error=None if gone is None else not_sent_after_gone(gone), created_at=utcnow(),
     ))
+
+
+def not_sent_after_gone(gone_id: str) -> str:
+    """The ``last_error`` of a job's delivery never sent because another of the job's, ``gone_id``, to the same URL
+    was answered 410 Gone: Standard Webhooks' receivers answer it to stop the deliveries, and the job's later events
+    had still been sent there (each failing on its own 410)."""
+    return (f"not sent: the receiver answered 410 Gone to this job's delivery {gone_id} (gone for good), so none of "
+            "the job's deliveries go to it any more")
+
+
+def stop_after_gone(session: Session, delivery: WebhookDelivery) -> None:
+    """Fail the job's other pending deliveries to ``delivery``'s URL, which its receiver answered 410 Gone, unsent
+    (:func:`not_sent_after_gone`); :func:`enqueue` writes the job's later ones so at once."""
+    session.execute(update(WebhookDelivery)
+                    .where(WebhookDelivery.job_id == delivery.job_id, WebhookDelivery.url == delivery.url,
+                           WebhookDelivery.state == PENDING, WebhookDelivery.id != delivery.id)
+                    .values(state=GAVE_UP, next_attempt_at=None, last_error=not_sent_after_gone(delivery.id))
+                    .execution_options(synchronize_session=False))
 
 
 def webhook_origin(url: str) -> str:
