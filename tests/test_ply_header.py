@@ -151,3 +151,17 @@ def test_a_header_line_the_loader_misreads_is_a_fault_naming_it(tmp_path, line, 
     path.write_text(f"ply\nformat ascii 1.0\n{line}{_VERTICES.replace('property float z', 'propertyz float z')}"
                     f"{_FACES.replace('property list', 'property_ list')}end_header\n0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n")
     assert ply_fault(path, read_body) == fault
+
+
+@pytest.mark.parametrize("read_body", [True, False])
+@pytest.mark.parametrize("fmt, body", [("ascii", b"0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n3 0 2 1\n"),
+                                       ("binary_little_endian", _BODY + _BODY[-13:])])
+def test_an_element_declared_twice_is_a_fault_naming_it(tmp_path, fmt, body, read_body):
+    """trimesh keeps one element of a name: of two face elements, an ASCII body's first rows had been read as the last
+    one's count (the rest dropped without a word), a binary body failed "PLY is unexpected length!", and an upload's
+    face limit had counted the last one's faces alone."""
+    path = tmp_path / "twice.ply"
+    path.write_bytes(f"ply\nformat {fmt} 1.0\n{_VERTICES}{_FACES}{_FACES}end_header\n".encode() + body)
+    assert ply_fault(path, read_body) == ("its header's line 9, 'element face 1', declares a second 'face' element: "
+                                          "the loader keeps one, of the last one's count (the other rows misread or "
+                                          "dropped); write one 'face' element holding them all")

@@ -589,6 +589,21 @@ def test_duplicate_and_unwritable_multipart_files(client, dataset, root):  # noq
     assert client.get("/v1/scenes").json()["total"] == 0 and stored_files(root) == [] and staged(root) == []
 
 
+def test_a_ply_declaring_two_face_elements_is_refused_at_upload(client, root):  # noqa: F811
+    """Its face limit had counted the last face element's faces alone (3,000,000 and then 1: taken as 1), and the
+    loader keeps one of them, misreading or dropping the other's rows."""
+    header = ("ply\nformat binary_little_endian 1.0\nelement vertex 3\nproperty float x\nproperty float y\n"
+              "property float z\nelement face 3000000\nproperty list uchar int vertex_indices\nelement face 1\n"
+              "property list uchar int vertex_indices\nend_header\n")
+    body = np.eye(3, dtype="<f4").tobytes() + b"\x03" + np.arange(3, dtype="<i4").tobytes()
+    response = client.post("/v1/scenes", files=[("files", ("two.ply", header.encode() + body))])
+    assert (response.status_code, response.json()["detail"]) == (
+        422, "two.ply: its header's line 9, 'element face 1', declares a second 'face' element: the loader keeps "
+             "one, of the last one's count (the other rows misread or dropped); write one 'face' element holding "
+             "them all")
+    assert client.get("/v1/scenes").json()["total"] == 0 and stored_files(root) == [] and staged(root) == []
+
+
 def test_a_one_valued_form_field_sent_twice_is_a_422_naming_it(client, root):  # noqa: F811
     """``-F name=first -F name=second`` had made a scene named 'second' (and ``-F mesh_shading`` twice took the
     last), where the README promises nothing sent is silently dropped or picked."""

@@ -90,10 +90,12 @@ def ply_fault(path: str | os.PathLike, read_body: bool = True) -> str | None:
     one), "data type '' not understood" (a binary PLY's element without properties, where this check had failed on a
     division by zero), "string or file could not be read to its end" (a word in a row), "PLY is unexpected length!"
     (a text body under a binary format line, or a binary body not the length its header makes:
-    ``_binary_body_fault``), and had dropped a face row holding fewer indices than its count; it ends the header at
-    a line holding the word end_header among others (a comment), its later lines read as the body (a file that
-    failed, or one ending there, which this check had said had no end_header). Without ``read_body``, the header's
-    faults only."""
+    ``_binary_body_fault``), and had dropped a face row holding fewer indices than its count; it keeps one element
+    of a name declared twice (of two face elements, an ASCII body's first rows read as the last one's count, the
+    rest dropped; a binary body "PLY is unexpected length!"), whose count an upload's face limit had taken from the
+    last alone; it ends the header at a line holding the word end_header among others (a comment), its later lines
+    read as the body (a file that failed, or one ending there, which this check had said had no end_header). Without
+    ``read_body``, the header's faults only."""
     elements: list[tuple[str, int, list[list[str]]]] = []  # (name, count, per property its types: a list's two)
     declared = set()  # (element, property) names
     body_format, lines_read = None, 1
@@ -121,6 +123,10 @@ def ply_fault(path: str | os.PathLike, read_body: bool = True) -> str | None:
             elif "element" in words[0]:  # as trimesh reads them ("elements 3" had failed "not enough values to unpack")
                 if len(words) != 3 or (count := _count(words[2])) is None:
                     return f"its header's line {lines_read}, {text[:60]!r}, is not 'element <name> <count>'"
+                if any(name == words[1] for name, _, _ in elements):  # trimesh keeps one, of the last count
+                    return (f"its header's line {lines_read}, {text[:60]!r}, declares a second {words[1][:20]!r} "
+                            "element: the loader keeps one, of the last one's count (the other rows misread or "
+                            f"dropped); write one {words[1][:20]!r} element holding them all")
                 elements.append((words[1], count, []))
             elif "property" in words[0]:  # (its vertices' x, y, z and faces' corners as trimesh finds them)
                 if not elements:
