@@ -77,6 +77,10 @@ _DISPLAY_UP = {3: (0.0, -1.0, 0.0), 4: (0.0, -1.0, 0.0), 5: (-1.0, 0.0, 0.0), 6:
 _STORED_UP = (0.0, 1.0, 0.0)
 _IMPLIED_EXTENSIONS = (".png", ".jpg", ".jpeg")  # tried in turn after a file_path as written (``image_candidates``)
 _PATH_SHOWN = 100  # characters of a frame's file_path a message shows (a json may hold any number)
+JSON_BYTES_PER_FRAME = 16 << 10
+"""The most bytes of a transforms json ``load_scene``'s ``max_frames`` lets in per frame: ten times a frame with every
+key it reads, written with an indent of 4. A json is read whole before its frames can be counted (36 MB took 9 s of an
+upload's check)."""
 
 
 class DatasetError(ValueError):
@@ -188,7 +192,8 @@ def load_scene(
     keeping none: ``images`` is (N, H, W, 0). Its float copies had held a 50-megapixel upload's 1.2 GB or more.
     ``max_frames`` (the upload check: the files the folder holds) refuses a split of more frames than that, which
     cannot each have an image of their own, before checking them one by one: a json of a million frames compresses
-    to a few MB, and their checks had held an upload's request for many minutes.
+    to a few MB, and their checks had held an upload's request for many minutes. A json longer than
+    ``JSON_BYTES_PER_FRAME`` times it is refused before it is read.
     """
     if not isinstance(downsample, int) or downsample < 1:
         raise ValueError(f"downsample must be a positive integer, got {downsample!r}")
@@ -210,7 +215,7 @@ def load_scene(
         json_path, meta = colmap_transforms(root, max_frames)
     else:
         json_path = root / (f"transforms_{split}.json" if fmt == "nerf_synthetic" else "transforms.json")
-        meta = _read_json(json_path)
+        meta = _read_json(json_path, max_frames)
     where = _Where(json_path, label=json_path.relative_to(root).as_posix())
     frames = meta.get("frames")
     if "frames" not in meta:
@@ -441,9 +446,14 @@ def _inside(root: Path, file_path: str) -> bool:
     return (resolved_root / file_path).resolve().is_relative_to(resolved_root)
 
 
-def _read_json(path: Path) -> dict:
+def _read_json(path: Path, max_frames: int | None = None) -> dict:
+    """The json at ``path``; one longer than ``max_frames`` frames' ``JSON_BYTES_PER_FRAME`` is refused unread."""
     if not path.is_file():
         raise DatasetError(f"{path.name}: not found in {path.parent}", path)
+    if max_frames is not None and (size := path.stat().st_size) > max_frames * JSON_BYTES_PER_FRAME:
+        raise DatasetError(f"{path.name}: {size:,} bytes, more than the {max_frames * JSON_BYTES_PER_FRAME:,} "
+                           f"({JSON_BYTES_PER_FRAME:,} a frame) the {max_frames:,} files in the dataset folder can "
+                           "explain: each frame needs an image of its own", path)
     try:
         meta = json.loads(path.read_bytes())
     except json.JSONDecodeError as e:
