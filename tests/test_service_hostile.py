@@ -640,6 +640,13 @@ def test_a_one_valued_form_field_sent_twice_is_a_422_naming_it(client, root):  #
     assert (once.status_code, once.json()["name"]) == (201, "second")
 
 
+def _multipart(*parts: tuple[bytes, bytes]) -> dict:
+    """A request's multipart body of ``parts`` (each its header lines, then its content), as written."""
+    body = b"".join(b"--b0undary\r\n" + headers + b"\r\n\r\n" + data + b"\r\n" for headers, data in parts)
+    return {"content": body + b"--b0undary--\r\n",
+            "headers": {"content-type": "multipart/form-data; boundary=b0undary"}}
+
+
 def test_a_multipart_part_of_the_wrong_kind_is_a_4xx_naming_its_field(client, root):  # noqa: F811
     """A text field where a file is expected (curl -F 'archive=<scene.zip', requests' ``data=``) had been a 422
     "Expected UploadFile, received: <class 'str'>" (over Starlette's 1 MB per text field a 400 "Part exceeded
@@ -666,6 +673,23 @@ def test_a_multipart_part_of_the_wrong_kind_is_a_4xx_naming_its_field(client, ro
         response = client.post("/v1/scenes", files={"archive": ("a.zip", small), field: ("auto.txt", b"auto")})
         assert response.status_code == 422, response.text
         assert response.json()["detail"] == f"{field!r} must be a text field, not a file ('auto.txt')"
+    assert client.get("/v1/scenes").json()["total"] == 0 and stored_files(root) == [] and staged(root) == []
+
+
+def test_a_part_over_the_form_parsers_header_limits_is_a_400_naming_them(client, root):  # noqa: F811
+    """A file name nested 3,000 folders deep (6 kB of Content-Disposition), or a part of nine headers, had been a bare
+    400 "Invalid multipart data."."""
+    from python_multipart.multipart import DEFAULT_MAX_HEADER_COUNT, DEFAULT_MAX_HEADER_SIZE
+
+    response = client.post("/v1/scenes", files=[("files", ("a/" * 3000 + "x.png", b"x"))])
+    assert (response.status_code, response.json()["detail"]) == (
+        400, f"a part of the form has a header line longer than {DEFAULT_MAX_HEADER_SIZE:,} bytes, the most the form "
+             "parser reads: a file name that long (a path of many folders?) cannot be sent; shorten it")
+    headers = b"\r\n".join([b'Content-Disposition: form-data; name="files"; filename="x.png"',
+                             *(b"X-Extra-%d: 1" % i for i in range(DEFAULT_MAX_HEADER_COUNT))])
+    response = client.post("/v1/scenes", **_multipart((headers, b"x")))
+    assert (response.status_code, response.json()["detail"]) == (
+        400, f"a part of the form has more than {DEFAULT_MAX_HEADER_COUNT} headers, the most the form parser reads")
     assert client.get("/v1/scenes").json()["total"] == 0 and stored_files(root) == [] and staged(root) == []
 
 

@@ -59,6 +59,8 @@ class UploadFilesRoute(StrictRoute):
             except StarletteHTTPException as exc:  # Starlette's 400 for a form it refuses
                 if exc.status_code == 400 and str(exc.detail).startswith("Too many files"):
                     raise HTTPException(status.HTTP_413_CONTENT_TOO_LARGE, too_many_files(max_files)) from None
+                if exc.status_code == 400 and (limit := _header_limit(exc)):  # a bare "Invalid multipart data."
+                    raise HTTPException(status.HTTP_400_BAD_REQUEST, limit) from None
                 # A text part's: Starlette's message names no field, so this one says what each field takes.
                 if exc.status_code == 400 and "exceeded maximum size" in str(exc.detail) and file_fields:
                     raise HTTPException(status.HTTP_413_CONTENT_TOO_LARGE,
@@ -90,6 +92,21 @@ class UploadFilesRoute(StrictRoute):
             return await handler(request)
 
         return parse_then_handle
+
+
+def _header_limit(refused: StarletteHTTPException) -> str | None:
+    """What a form refused for a part's headers over the multipart parser's limits hit (Starlette's 400 names none:
+    "Invalid multipart data."; its parse error is the cause of the exception it answered), or None for another 400.
+    A file name nested 3,000 folders deep is such a header."""
+    cause = getattr(refused.__context__, "__cause__", None)
+    if cause is None or not str(cause).startswith("Maximum header"):
+        return None
+    from python_multipart.multipart import DEFAULT_MAX_HEADER_COUNT, DEFAULT_MAX_HEADER_SIZE  # (versions with them)
+
+    if "count" in str(cause):
+        return f"a part of the form has more than {DEFAULT_MAX_HEADER_COUNT} headers, the most the form parser reads"
+    return (f"a part of the form has a header line longer than {DEFAULT_MAX_HEADER_SIZE:,} bytes, the most the form "
+            "parser reads: a file name that long (a path of many folders?) cannot be sent; shorten it")
 
 
 router = APIRouter(prefix="/v1/scenes", tags=["scenes"], route_class=UploadFilesRoute)
