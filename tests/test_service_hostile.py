@@ -640,6 +640,10 @@ def test_a_one_valued_form_field_sent_twice_is_a_422_naming_it(client, root):  #
     assert (once.status_code, once.json()["name"]) == (201, "second")
 
 
+_NOT_TEXT = ("not a text field: a part whose Content-Disposition has no filename= parameter, as one naming its file "
+             "only by RFC 5987's filename*= has not, is read as text (RFC 7578: send filename=\"...\")")
+
+
 def _multipart(*parts: tuple[bytes, bytes]) -> dict:
     """A request's multipart body of ``parts`` (each its header lines, then its content), as written."""
     body = b"".join(b"--b0undary\r\n" + headers + b"\r\n\r\n" + data + b"\r\n" for headers, data in parts)
@@ -651,14 +655,20 @@ def test_a_multipart_part_of_the_wrong_kind_is_a_4xx_naming_its_field(client, ro
     """A text field where a file is expected (curl -F 'archive=<scene.zip', requests' ``data=``) had been a 422
     "Expected UploadFile, received: <class 'str'>" (over Starlette's 1 MB per text field a 400 "Part exceeded
     maximum size of 1024KB."), and a file where text is expected a 422 dumping the server's upload object (its
-    temporary file's arguments)."""
+    temporary file's arguments). A file named only by RFC 5987's filename*= (as some clients send it) had been told
+    "not a text field" alone, its sender left to wonder: the 422 says what makes a part a file."""
     small, large = _zip({"transforms_train.json": b"{}"}), _zip({"big.bin": random.Random(0).randbytes(3 << 19)})
     for data, files, field in ((None, {"archive": (None, small)}, "archive"),  # multipart, no filename
                                ({"files": "{}"}, {"files": ("images/0.png", b"x")}, "files")):
         response = client.post("/v1/scenes", data=data, files=files)
         assert response.status_code == 422, response.text
         assert response.json()["detail"] == (f"{field!r} must be a file (a part with a filename: curl -F "
-                                             f"'{field}=@<path>'), not a text field")
+                                             f"'{field}=@<path>'), {_NOT_TEXT}")
+    # a file named by RFC 5987's filename*= alone (as some clients send it) is a text field to Starlette
+    response = client.post("/v1/scenes", **_multipart((
+        b"Content-Disposition: form-data; name=\"archive\"; filename*=UTF-8''sc%C3%A8ne.zip", small)))
+    assert (response.status_code, response.json()["detail"]) == (
+        422, f"'archive' must be a file (a part with a filename: curl -F 'archive=@<path>'), {_NOT_TEXT}")
     # Over Starlette's 1 MB a part is refused unnamed: the 413 had told to send 'archive' or 'files' as a file even
     # when the part was 'name'.
     for data, files in ((None, {"archive": (None, large)}),

@@ -33,7 +33,9 @@ class UploadFilesRoute(StrictRoute):
     ignored, the scene made without it. A body sent as another media type than multipart/form-data (a raw zip, JSON;
     a urlencoded form, curl --data-binary's default, which cannot carry a file), or a body with no media type, is a
     415 naming it: it had been read as an empty form, a 422 "send either one zip 'archive' or the dataset's 'files'"
-    (a urlencoded one as field names: a 422 naming the whole body)."""
+    (a urlencoded one as field names: a 422 naming the whole body). A file part named only by ``filename*=UTF-8''...``
+    (RFC 5987's form, which RFC 7578 says senders should not use; some clients do) is a text field to Starlette: its
+    422 says so."""
 
     def get_route_handler(self):
         handler = super().get_route_handler()
@@ -74,9 +76,12 @@ class UploadFilesRoute(StrictRoute):
                 for part in form.getlist(field.alias):
                     if part == "" and not takes_several(field.field_info.annotation):  # FastAPI's "not sent"
                         continue
-                    if wants_file and isinstance(part, str):
+                    if wants_file and isinstance(part, str):  # (Starlette keeps no part's headers: no more said)
                         raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, f"{field.alias!r} must be a file "
-                                            f"({as_file(field.alias)}), not a text field")
+                                            f"({as_file(field.alias)}), not a text field: a part whose "
+                                            "Content-Disposition has no filename= parameter, as one naming its file "
+                                            "only by RFC 5987's filename*= has not, is read as text (RFC 7578: "
+                                            "send filename=\"...\")")
                     if not wants_file and not isinstance(part, str):
                         raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT,
                                             f"{field.alias!r} must be a text field, not a file ({part.filename!r})")
