@@ -1920,6 +1920,22 @@ def test_a_grid_with_nan_features_is_refused_by_render_and_turntable_before_any_
         assert not output.exists() or not any(output.iterdir())
 
 
+def test_a_grid_with_nan_colours_is_refused_by_export_mesh_not_meshed_black(make_sphere_grid, tmp_path, capsys):
+    """A damaged grid file whose density is whole but whose colour features are NaN had been meshed with exit 0, its
+    vertex colours black there (extract_mesh read only the density). It is now refused as render refuses it, naming
+    the damage, and no mesh is written."""
+    grid = make_sphere_grid()
+    grid.features.data[12:20, 12:20, 24:32, 1:] = float("nan")  # the colours only: the surface is defined
+    # (the sparse file keeps 192 of these 512 vertices: those of the cells that can hold density)
+    path = tmp_path / "damaged.safetensors"
+    grid.save(path)
+    out = tmp_path / "mesh.ply"
+    assert main(["export-mesh", str(path), "--out", str(out), "--device", "cpu"]) == 2
+    assert ("the grid has non-finite (NaN or infinite) features at 192 of its 32768 vertices, which the vertex "
+            "colouring would carry into the mesh's colours (a damaged grid file?)") in capsys.readouterr().err
+    assert not out.exists()
+
+
 def test_ring_of_a_capture_grid_orbits_its_object_or_the_grid_named_by_centre_of(tmp_path, capsys):
     """A scene grid's ball 0.69 units off its frame's origin is in the middle of every ring view; with
     ``--centre-of`` a grid whose ball is at the origin, the ring looks at the origin and the ball moves off."""

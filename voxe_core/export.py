@@ -481,7 +481,7 @@ def extract_mesh(grid: VoxelGrid, level: float | None = None, resolution: int | 
     matter touching the box is capped on the box faces and the mesh stays
     closed. Vertex colours (uint8 RGBA) are what a render shows there: :func:`_surface_colours`, from
     ``colour_samples`` samples per vertex (bench/mesh_colours.py weighs their cost against their error).
-    Raises ``ValueError`` when no density crosses ``level``.
+    Raises ``ValueError`` when no density crosses ``level``, or a feature is NaN or infinite (a damaged grid).
     """
     import trimesh
     from skimage.measure import marching_cubes
@@ -501,6 +501,9 @@ def extract_mesh(grid: VoxelGrid, level: float | None = None, resolution: int | 
     if unknown:
         raise ValueError(f"grid density is NaN at {unknown} vertices, so its surface is undefined there "
                          "(a diverged fit or edit?)")
+    from voxe_core.reconstruct import check_finite_grid  # (NaN colours had been exported as black, silently)
+
+    check_finite_grid(grid, "the vertex colouring", what="the grid", where="the mesh's colours")
     occupancy = grid.occupancy_above(level)
     if occupancy.empty:
         peak = float(grid.activate_density(grid.features[..., 0].detach()).max())
