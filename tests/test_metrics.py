@@ -149,6 +149,24 @@ def test_images_without_pixels_are_refused_naming_their_shape(shape):
     assert psnr(torch.zeros(0, 4, 4, 3), torch.zeros(0, 4, 4, 3)).shape == (0,)  # an empty batch stays an empty result
 
 
+@pytest.mark.parametrize("value", [float("nan"), float("inf")])
+def test_images_holding_nan_or_infinite_pixels_are_refused_naming_how_many(value):
+    # (PSNR and SSIM of them had been NaN, silently: a score no caller could tell from a real one, nor write as JSON)
+    a, b = smooth_noise(16, 16, 0), smooth_noise(16, 16, 1)
+    a[3, 4, 1] = a[5, 6] = value
+    keep = torch.ones(16, 16, dtype=torch.bool)
+    keep[3, 4] = keep[5, 6] = False  # out of the score, and still refused: its NaN had leaked into PSNR's sum
+    for metric in (psnr, ssim):
+        with pytest.raises(ValueError, match=r"^images hold NaN or infinite values, at 2 pixels of the first and 0 "
+                                             r"of the second, which no score is defined for \(a diverged render\?\)$"):
+            metric(a, b)
+        with pytest.raises(ValueError, match=r"at 0 pixels of the first and 2 of the second"):  # a batch alike
+            metric(b[None], a[None])
+        with pytest.raises(ValueError, match=r"at 2 pixels of the first and 0 of the second"):
+            metric(a, b, keep=keep)
+    assert math.isnan(psnr(a.nan_to_num(0.5, 0.5), b, keep=torch.zeros(16, 16, dtype=torch.bool)))  # none kept: NaN
+
+
 @pytest.mark.parametrize("peak", [0, -1.0, float("nan"), float("inf"), "1"])
 def test_a_peak_that_is_no_positive_number_is_refused(peak):
     # (max_val 0 had scored -inf dB, -1 the PSNR of a peak of 1, a NaN data_range a NaN SSIM)

@@ -3,7 +3,8 @@
 Images are float tensors (..., H, W, 3) in [0, 1] (any channel count works), or uint8 pixels, 255 standing for
 ``max_val`` / ``data_range`` (as every other reader of images here takes them: ``export.to_uint8``, the evaluation's
 scorers). bool images are 0 and 1; other integer images are values on the scale of an explicit ``max_val`` /
-``data_range`` (on the default peak of 1 they are refused).
+``data_range`` (on the default peak of 1 they are refused). Images holding NaN or infinite values are refused, a
+masked-out pixel's too.
 A single pair (H, W, C) gives a Python float; a batch (N, ..., H, W, C) gives a
 tensor with one value per image. SSIM is the standard one of Wang et al. 2004
 as scikit-image computes it with ``gaussian_weights=True, sigma=1.5,
@@ -55,7 +56,11 @@ def _as_pair(a, b, peak: float | None) -> tuple[torch.Tensor, torch.Tensor, floa
         raise ValueError(f"expected images shaped (..., H, W, C), got {tuple(a.shape)}")
     if 0 in a.shape[-3:]:  # (PSNR had averaged no pixels into NaN, SSIM failed in a reshape naming no image)
         raise ValueError(f"images have no pixels: shaped {tuple(a.shape)}, (..., H, W, C) with H, W and C at least 1")
-    return a, b.to(a.device), scale
+    b = b.to(a.device)
+    if any(bad := [int((~image.isfinite()).any(-1).sum()) for image in (a, b)]):  # (scored NaN, silently)
+        raise ValueError(f"images hold NaN or infinite values, at {bad[0]} pixels of the first and {bad[1]} of the "
+                         "second, which no score is defined for (a diverged render?)")
+    return a, b, scale
 
 
 def _on_scale(image: torch.Tensor, peak: float, explicit: bool) -> torch.Tensor:
