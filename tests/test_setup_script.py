@@ -85,3 +85,20 @@ def test_serve_says_the_apis_url_for_every_loopback_host(tmp_path):
     assert "voxe: API on http://127.0.0.1:8000 (docs: http://127.0.0.1:8000/docs)" in serve()
     assert "voxe: API on http://[::1]:8123 (docs: http://[::1]:8123/docs)" in serve(VOXE_HOST="::1", VOXE_PORT="8123")
     assert "voxe: API on http://localhost:8000 " in serve(VOXE_HOST="localhost")
+
+
+def test_serve_on_all_interfaces_says_a_url_a_browser_opens(tmp_path):
+    """With ``VOXE_HOST=0.0.0.0`` (or ``::``) ``bash .ci/serve`` had printed ``http://0.0.0.0:8000``, which browsers
+    refuse to open: it now prints this machine's ``localhost`` URL and says the API listens on every interface."""
+    (tmp_path / ".ci").mkdir()
+    shutil.copy(REPO / ".ci" / "serve", tmp_path / ".ci" / "serve")
+    python = tmp_path / "python"  # does nothing: the migration passes, the API and the worker end at once
+    python.write_text("#!/usr/bin/env bash\n")
+    python.chmod(0o755)
+    for host in ("0.0.0.0", "::"):
+        result = subprocess.run(["bash", ".ci/serve"], cwd=tmp_path, capture_output=True, text=True, timeout=60,
+                                env={**os.environ, "VOXE_PYTHON": str(python), "VOXE_HOST": host, "VOXE_PORT": "8123"})
+        assert result.returncode == 0, result.stderr
+        assert (f"voxe: API on http://localhost:8123 (docs: http://localhost:8123/docs), listening on all interfaces "
+                f"({host}), worker ") in result.stderr
+        assert "0.0.0.0:" not in result.stderr and "[::]" not in result.stderr
