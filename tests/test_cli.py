@@ -2478,6 +2478,42 @@ def test_a_fresh_edit_leaves_no_earlier_runs_previews_and_a_resumed_one_keeps_it
     assert previews() == ["notes.txt", "preview_00000.png", "preview_00002.png", "preview_00003.png"]
 
 
+def test_a_fresh_edit_that_fails_or_is_cancelled_leaves_no_earlier_runs_result(sphere_grid, tmp_path, monkeypatch,
+                                                                                capsys):
+    """A fresh edit into an --out holding an earlier run's edited.safetensors had left it there when the new run
+    failed or was cancelled: beside the new run's checkpoint and previews, as if it were this run's result. A fresh
+    run removes it first (a resumed one continues that edit); a GRID that is that file, the input, stays."""
+    import voxe_core.cli.edit as edit_command
+    import voxe_core.edit
+    from voxe_core.progress import StageCancelled
+
+    monkeypatch.setattr(edit_command, "load_guidance", stand_in_guidance())
+    sphere_grid.save(tmp_path / "g.safetensors")
+    out = tmp_path / "out"
+    edit = ["edit", str(tmp_path / "g.safetensors"), "--prompt", "a dog", "--out", str(out), "--device", "cpu", "-q",
+            "--iterations", "2", "--preview-every", "1"]
+    monkeypatch.setattr(voxe_core.edit, "edit", previewing_edit)
+
+    def cancelled(*args, **kwargs):
+        previewing_edit(*args, **kwargs)  # a checkpoint and previews of this run
+        raise StageCancelled("edit")
+
+    def failing(*args, **kwargs):
+        raise RuntimeError("CUDA out of memory")
+
+    for stand_in, code in ((cancelled, 130), (failing, 2)):
+        assert main(edit) == 0 and (out / "edited.safetensors").is_file()  # the earlier run, whole
+        monkeypatch.setattr(voxe_core.edit, "edit", stand_in)
+        assert main(edit) == code
+        assert not (out / "edited.safetensors").exists()
+        monkeypatch.setattr(voxe_core.edit, "edit", previewing_edit)
+    capsys.readouterr()
+    assert main(edit) == 0
+    monkeypatch.setattr(voxe_core.edit, "edit", failing)  # editing that result further, into the same --out
+    assert main(["edit", str(out / "edited.safetensors"), *edit[2:]]) == 2
+    assert (out / "edited.safetensors").is_file()
+
+
 @pytest.mark.parametrize("change, message", [
     ({"--prompt": "a cat"}, "checkpoint was made for the prompt 'a dog', not 'a cat'"),
     ({"grid": 20}, "checkpoint grid is (32, 32, 32), the initial grid (20, 20, 20)"),
