@@ -765,6 +765,11 @@ BAD_FIELDS = [
      "edit word 'sunglasses.' does not occur in the prompt as the model reads it"),
     ({"prompt": "a mic wearing big sunglasses!", "edit_words": ["sunglasses!"]}, ["body"],
      "edit word 'sunglasses!' does not occur in the prompt as the model reads it"),
+    # a symbol ending the prompt is read together with the view word's comma: the advice had been to name it "without
+    # the punctuation around it", which it has none of
+    ({"prompt": "a mic wearing a \U0001f3a9", "edit_words": ["\U0001f3a9"]}, ["body"],
+     "the view words append ', front view' to the prompt, and the model reads their comma together with the symbol "
+     "ending it ('\U0001f3a9,' is one piece): end the prompt with another word, or turn view_words off"),
     # had been accepted and cut off at the text encoder: the local edit failed at its refinement, not finding
     # its edit word, after the whole edit
     ({"prompt": "a mic " + "very " * 80 + "wearing big sunglasses"}, ["body"],
@@ -808,6 +813,10 @@ def test_bad_job_fields_are_422_naming_the_field(client):
     no_comma = {"scene_id": NO_SCENE, **JOB, "prompt": "a mic wearing big sunglasses!", "edit_words": ["sunglasses!"],
                 "params": {"view_words": False}}
     assert client.post("/v1/jobs", json=no_comma).status_code == 404  # "!" read alone without ", front view"
+    for hat in ({"prompt": "a mic wearing a \U0001f3a9", "params": {"view_words": False}},  # as the advice says
+                {"prompt": "a \U0001f3a9 on a mic"}):
+        assert client.post("/v1/jobs", json={"scene_id": NO_SCENE, **JOB, "edit_words": ["\U0001f3a9"], **hat}
+                           ).status_code == 404
 
 
 def test_non_finite_numbers_are_422_not_500(client):

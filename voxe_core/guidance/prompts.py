@@ -218,7 +218,8 @@ def check_edit_words_read(user_text: str, edit_words: list[str], view_words: boo
     model reads it (each prompt the refinement gives its attention model: "a render of <text>", with each view word
     unless ``view_words`` is off), where the guidance's ``token_spans`` looks for its tokens, after the whole edit.
     Punctuation at a word's edge is read with the punctuation beside it: "hat." at the prompt's end is read as
-    "hat" then ", front view" (the full stop dropped), "hat!" as "hat" then "!,".
+    "hat" then ", front view" (the full stop dropped), "hat!" as "hat" then "!,", and a symbol ending the prompt as
+    one piece with the view word's comma ("🎩,"): said as such, as no spelling of the word finds it there.
 
     Examples:
         >>> check_edit_words_read("a dog wearing a hat!", ["hat"])
@@ -232,12 +233,23 @@ def check_edit_words_read(user_text: str, edit_words: list[str], view_words: boo
         pieces, text_end = clip_pieces(prompt), len(clip_pieces(without_view_word(prompt)))
         for word in edit_words:
             sub = clip_pieces(word)
-            if not any(pieces[i:i + len(sub)] == sub for i in range(text_end - len(sub) + 1)):
+            if not _occurs(sub, pieces[:text_end]):
                 shown = " ".join(repr(piece) for piece in sub)
-                raise ValueError(f"edit word {word!r} does not occur in the prompt as the model reads it, {prompt!r} "
-                                 f"(its pieces {shown} are no run of the prompt's; punctuation is read together with "
-                                 "the punctuation beside it): name it as the prompt writes it, without the punctuation "
-                                 "around it")
+                said = f"edit word {word!r} does not occur in the prompt as the model reads it, {prompt!r}"
+                if view is not None and _names(sub[-1]) and _occurs(sub, clip_pieces(edit_prompt(user_text))):
+                    # Only the view word's comma is in the way, of a symbol ending the prompt ("a dog in a 🎩"): the
+                    # advice below had told the user to drop punctuation the word does not hold.
+                    raise ValueError(f"{said}: the view words append ', {view} view' to the prompt, and the model "
+                                     f"reads their comma together with the symbol ending it ({pieces[text_end - 1]!r} "
+                                     "is one piece): end the prompt with another word, or turn view_words off")
+                raise ValueError(f"{said} (its pieces {shown} are no run of the prompt's; punctuation is read together "
+                                 "with the punctuation beside it): name it as the prompt writes it, without the "
+                                 "punctuation around it")
+
+
+def _occurs(sub: list[str], pieces: list[str]) -> bool:
+    """Whether the pieces ``sub`` are a run of ``pieces``."""
+    return any(pieces[i:i + len(sub)] == sub for i in range(len(pieces) - len(sub) + 1))
 
 
 def tokens_read(tokenizer, max_position_embeddings: int) -> int:
