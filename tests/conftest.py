@@ -106,6 +106,29 @@ def fill_disk(monkeypatch):
     return fill
 
 
+@pytest.fixture
+def flushed_renames(monkeypatch) -> list[tuple[str, bool]]:
+    """Each ``os.replace`` from then on, as (the target's name, whether the file renamed was flushed (``os.fsync``) as
+    it is): what a crash soon after the rename would find under the name."""
+    synced, renamed = set(), []
+    real_fsync, real_replace = os.fsync, os.replace
+
+    def identity(found: os.stat_result) -> tuple[int, int, int]:
+        return found.st_dev, found.st_ino, found.st_size
+
+    def fsync(fd):
+        real_fsync(fd)
+        synced.add(identity(os.fstat(fd)))
+
+    def replace(source, target, *args, **kwargs):
+        renamed.append((Path(target).name, identity(os.stat(source)) in synced))
+        return real_replace(source, target, *args, **kwargs)
+
+    monkeypatch.setattr(os, "fsync", fsync)
+    monkeypatch.setattr(os, "replace", replace)
+    return renamed
+
+
 # ------------------------------------------------------------------ databases
 @pytest.fixture(scope="session")
 def postgres_server(tmp_path_factory):

@@ -147,22 +147,28 @@ def test_a_service_url_with_a_query_or_fragment_is_refused_naming_it_not_sent_ca
     Client("https://svc.test:8443/voxe/").close()
 
 
+def assert_url_refused(capsys, url: str, message: str, **client_options) -> None:
+    """``url`` is refused with ``message`` by the client and, as the usage error it is, by ``voxe status --api``."""
+    from voxe_core.cli import main
+
+    with pytest.raises(ValueError, match=f"^{re.escape(message)}$"):
+        Client(url, **client_options)
+    assert main(["status", "j1", "--api", url]) == 2
+    assert capsys.readouterr().err == f"voxe status: error: --api: {message}\n"
+
+
 def test_a_service_url_with_a_user_or_password_is_refused_without_saying_the_password(capsys):
     """``--api http://user:secret@host:8000`` had been taken: httpx sent the user and password as Basic auth in place of
     the API key's Bearer header (the service answering 401), and every error quoted the URL, the password with it
     ("cannot reach the service at http://user:secret@..."). It is bad input, the password not said."""
-    from voxe_core.cli import main
-
     asked = []
     for url, shown in (("http://user:secret@127.0.0.1:8000", "http://***@127.0.0.1:8000"),
                        ("https://s3cr%40t@svc.test/voxe?x=1", "https://***@svc.test/voxe?x=1"),
                        ("http://user@svc.test", "http://***@svc.test")):
         message = (f"{shown!r} is not a service URL: it has a user name or password, which the service takes none of "
                    "(its API key goes as --api-key or VOXE_API_KEY; the client's api_key)")
-        with pytest.raises(ValueError, match=f"^{re.escape(message)}$"):
-            Client(url, api_key="k", transport=httpx.MockTransport(lambda request: asked.append(request.headers)))
-        assert main(["status", "j1", "--api", url]) == 2
-        assert capsys.readouterr().err == f"voxe status: error: --api: {message}\n"
+        assert_url_refused(capsys, url, message, api_key="k",
+                           transport=httpx.MockTransport(lambda request: asked.append(request.headers)))
     assert asked == []
 
 
@@ -170,17 +176,12 @@ def test_a_service_url_whose_scheme_is_left_out_is_refused_without_saying_its_pa
     """``--api admin:s3cret@svc.test:8000`` (the scheme forgotten) and ``http:/admin:s3cret@svc.test`` (a slash
     short) were refused as no http(s) URL quoting the whole of it, the password with it, where one written with its
     ``//`` is quoted masked: each is now quoted with what stands before its ``@`` masked."""
-    from voxe_core.cli import main
-
     for url, shown in (("admin:s3cret@svc.test:8000", "admin:***@svc.test:8000"),
                        ("http:/admin:s3cret@svc.test", "http:/***@svc.test"),
                        ("http:///admin:s3cret@svc.test", "http:///***@svc.test")):
         message = (f"{shown!r} is not a service URL: it takes http:// or https:// and a host, as "
                    "http://127.0.0.1:8000")
-        with pytest.raises(ValueError, match=f"^{re.escape(message)}$"):
-            Client(url)
-        assert main(["status", "j1", "--api", url]) == 2
-        assert capsys.readouterr().err == f"voxe status: error: --api: {message}\n"
+        assert_url_refused(capsys, url, message)
 
 
 def test_a_redirect_answered_says_where_it_points_not_that_it_may_not_be_the_service(capsys):
@@ -205,35 +206,25 @@ def test_a_redirect_answered_says_where_it_points_not_that_it_may_not_be_the_ser
 def test_an_ipv6_service_url_written_wrong_is_refused_naming_the_option_and_the_fault(capsys):
     """``--api 'http://[::1'`` (the bracket unclosed) and ``http://::1`` (no brackets) had been refused as httpx's
     "Invalid port: ':1'", naming neither the option nor the fault; a password in such a URL is not quoted."""
-    from voxe_core.cli import main
-
     for url, shown, fault in (
             ("http://[::1", "http://[::1", "its IPv6 address's '[' has no closing ']'"),
             ("http://[::1/v1x", "http://[::1/v1x", "its IPv6 address's '[' has no closing ']'"),
             ("http://user:secret@[::1", "http://***@[::1", "its IPv6 address's '[' has no closing ']'"),
             ("http://::1:8000", "http://::1:8000", "an IPv6 address is written in [ ]")):
         message = f"{shown!r} is not a service URL: {fault}, as http://[::1]:8000"
-        with pytest.raises(ValueError, match=f"^{re.escape(message)}$"):
-            Client(url)
-        assert main(["status", "j1", "--api", url]) == 2
-        assert capsys.readouterr().err == f"voxe status: error: --api: {message}\n"
+        assert_url_refused(capsys, url, message)
     Client("http://[::1]:8000/voxe/").close()
 
 
 def test_an_ipv6_service_url_with_text_after_its_bracket_is_refused_naming_that_text(capsys):
     """``--api 'http://[::1]x'`` had been refused as httpx's "Invalid port: 'x'" (of ``http://[::1]x:8000``: "Invalid
     port: 'x:8000'"): no port was written; what follows the ']' is named, a password in the URL not quoted."""
-    from voxe_core.cli import main
-
     for url, shown, after in (("http://[::1]x", "http://[::1]x", "x"),
                               ("http://user:secret@[::1]x:8000/v1", "http://***@[::1]x:8000/v1", "x:8000"),
                               ("https://[::1]]", "https://[::1]]", "]")):
         message = (f"{shown!r} is not a service URL: its IPv6 address's ']' is followed by {after!r}, where only a "
                    ":port may be, as http://[::1]:8000")
-        with pytest.raises(ValueError, match=f"^{re.escape(message)}$"):
-            Client(url)
-        assert main(["status", "j1", "--api", url]) == 2
-        assert capsys.readouterr().err == f"voxe status: error: --api: {message}\n"
+        assert_url_refused(capsys, url, message)
     Client("http://[::1]/voxe").close()
 
 
@@ -1343,7 +1334,7 @@ def test_a_download_over_a_file_keeps_its_permissions_and_a_symlink_stays_one(tm
     assert sorted(p.name for p in tmp_path.iterdir()) == ["latest.mp4", "runs"] and list(run.iterdir()) == [spot]
 
 
-def test_a_downloaded_artifact_is_on_the_disk_before_it_replaces_the_target(tmp_path, monkeypatch):
+def test_a_downloaded_artifact_is_on_the_disk_before_it_replaces_the_target(tmp_path, monkeypatch, flushed_renames):
     """The checked part file was renamed over the target without a flush: a power loss or kernel crash soon after
     could leave the target empty or torn (XFS, Btrfs, ext4 writing a new file), the part gone and the download said
     done, as voxe_core.files.replacing no longer leaves its files. It is flushed before the rename; a flush that finds
@@ -1351,24 +1342,10 @@ def test_a_downloaded_artifact_is_on_the_disk_before_it_replaces_the_target(tmp_
     import errno
     import os
 
-    data, synced, renamed = b"the turntable" * 100, set(), []
-    real_fsync, real_replace = os.fsync, os.replace
-
-    def fsync(fd):
-        real_fsync(fd)
-        found = os.fstat(fd)
-        synced.add((found.st_dev, found.st_ino, found.st_size))
-
-    def replace(source, target, *args, **kwargs):
-        found = os.stat(source)
-        renamed.append((found.st_dev, found.st_ino, found.st_size) in synced)
-        return real_replace(source, target, *args, **kwargs)
-
-    monkeypatch.setattr(os, "fsync", fsync)
-    monkeypatch.setattr(os, "replace", replace)
+    data = b"the turntable" * 100
     with Client(transport=httpx.MockTransport(_serving(data, "turntable.mp4"))) as client:
         client.download("j1", "turntable.mp4", tmp_path / "turntable.mp4")
-        assert renamed == [True] and (tmp_path / "turntable.mp4").read_bytes() == data
+        assert flushed_renames == [("turntable.mp4", True)] and (tmp_path / "turntable.mp4").read_bytes() == data
 
         def failing(fd):
             raise OSError(errno.EIO, os.strerror(errno.EIO))

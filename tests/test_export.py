@@ -135,7 +135,7 @@ def test_a_replaced_file_keeps_its_permissions_and_a_symlink_stays_one(tmp_path)
     assert sorted(p.name for p in run.iterdir()) == ["view.png"]
 
 
-def test_a_file_is_on_the_disk_before_it_replaces_the_earlier_one(sphere_grid, tmp_path, monkeypatch):
+def test_a_file_is_on_the_disk_before_it_replaces_the_earlier_one(sphere_grid, tmp_path, monkeypatch, flushed_renames):
     """The rename that puts a written file in place was not preceded by an fsync: a power loss or kernel crash soon
     after could leave the final name holding an empty or torn file (XFS, Btrfs, ext4 writing a new file), the earlier
     one gone, though files.py promises a crash never does. Each writer's file (a PNG, a grid safetensors renames in
@@ -143,27 +143,12 @@ def test_a_file_is_on_the_disk_before_it_replaces_the_earlier_one(sphere_grid, t
     the write, the earlier file kept; a file system that cannot flush (EINVAL) writes as before."""
     from voxe_core.export import write_video
 
-    synced, renamed = set(), []
-    real_fsync, real_replace = os.fsync, os.replace
-
-    def fsync(fd):
-        real_fsync(fd)
-        found = os.fstat(fd)
-        synced.add((found.st_dev, found.st_ino, found.st_size))
-
-    def replace(source, target, *args, **kwargs):
-        found = os.stat(source)
-        renamed.append((Path(target).name, (found.st_dev, found.st_ino, found.st_size) in synced))
-        return real_replace(source, target, *args, **kwargs)
-
-    monkeypatch.setattr(os, "fsync", fsync)
-    monkeypatch.setattr(os, "replace", replace)
     save_png(tmp_path / "view.png", torch.rand(4, 4, 3))
     sphere_grid.save(tmp_path / "grid.safetensors")
     save_mesh(extract_mesh(sphere_grid), tmp_path / "mesh.obj")
     write_video(tmp_path / "turn.gif", np.zeros((2, 8, 8, 3), np.uint8), fps=10)
-    assert sorted(renamed) == [(name, True) for name in
-                               ("grid.safetensors", "mesh.mtl", "mesh.obj", "turn.gif", "view.png")]
+    assert sorted(flushed_renames) == [(name, True) for name in
+                                       ("grid.safetensors", "mesh.mtl", "mesh.obj", "turn.gif", "view.png")]
 
     def failing(code):
         def fsync(fd):
