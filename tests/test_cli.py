@@ -749,7 +749,8 @@ def test_status_cancel_and_cancel_sweep_print_the_records_text_as_it_is(monkeypa
     import voxe_core.cli.service as service
     from voxe_client import Client
 
-    record = {"id": "j1", "state": "canceled", "prompt": "a café in Zürich ☕", "scene_name": "mic ✓"}
+    record = {"id": "j1", "state": "canceled", "prompt": "a café in Zürich ☕", "scene_name": "mic ✓",
+              "entries": [], "counts": {"canceled": 1}, "table": "| a café |\n"}  # (a sweep's members too)
     monkeypatch.setattr(service, "_client", lambda args: Client(transport=httpx.MockTransport(
         lambda request: httpx.Response(200, json=record))))
     for argv in (["status", "j1"], ["cancel", "j1"], ["cancel-sweep", "s1"]):

@@ -10,6 +10,7 @@ import functools
 import itertools
 import json
 import re
+import reprlib
 import subprocess
 import sys
 import zlib
@@ -28,11 +29,12 @@ def test_it_sends_json_with_the_key_and_returns_the_answer():
 
     def answer(request: httpx.Request) -> httpx.Response:
         seen.append(request)
-        return httpx.Response(201, json={"id": "s1", "state": "queued", "entries": []})
+        return httpx.Response(201, json=sweep)
 
+    sweep = {"id": "s1", "state": "queued", "entries": [], "counts": {"queued": 12}, "table": ""}
     with Client("http://svc.test/", api_key="k-123", transport=httpx.MockTransport(answer)) as client:
         scenes = [{"scene_id": "a", "object": "mic"}]
-        assert client.create_sweep(scenes, evaluation={"views": 4}) == {"id": "s1", "state": "queued", "entries": []}
+        assert client.create_sweep(scenes, evaluation={"views": 4}) == sweep
         client.get_sweep("s1")
     post, get = seen
     assert (post.method, str(post.url)) == ("POST", "http://svc.test/v1/sweeps")
@@ -102,6 +104,7 @@ def test_the_packages_example_runs(tmp_path, monkeypatch):
             return httpx.Response(200, content=body)
         if request.url.path == "/v1/sweeps":
             assert json.loads(request.content)["scenes"] == [{"scene_id": "s1", "object": "microphone"}]
+            return httpx.Response(201, json={"id": "w1", "state": "queued", "entries": [], "counts": {}, "table": ""})
         return httpx.Response(200, json={"id": "s1" if "scenes" in request.url.path else "j1", "state": "succeeded"})
 
     monkeypatch.chdir(tmp_path)
@@ -1973,6 +1976,45 @@ def test_a_record_answered_with_no_id_or_state_is_a_service_error_quoting_it(ans
                          capsys.readouterr().err, re.MULTILINE)
 
 
+@pytest.mark.parametrize("answered", [{"id": "w1", "state": "queued"},
+                                      {"id": "w1", "state": "queued", "entries": [], "counts": {}},
+                                      {"id": "w1", "state": "queued", "entries": {}, "counts": {}, "table": ""},
+                                      {"id": "w1", "state": "queued", "entries": [], "counts": [], "table": ""},
+                                      {"id": "w1", "state": "queued", "entries": [], "counts": {}, "table": None}])
+def test_a_sweep_answered_without_its_entries_counts_or_table_is_a_service_error_quoting_it(answered, monkeypatch,
+                                                                                            capsys):
+    """A sweep answered with an id and a state but no list of ``entries``, object of ``counts`` or string ``table``
+    (a proxy's partial JSON) had been returned as it came, and ``voxe sweep`` ended in a KeyError 'entries' (or
+    'counts', 'table' at its polls) traceback: each sweep call refuses it, quoting it, and ``voxe sweep`` says so,
+    exit 2, whether the sweep's creation or a poll of ``--wait`` answered it."""
+    import voxe_core.cli.service as service
+    from voxe_core.cli import main
+
+    whole = {"id": "w1", "state": "queued", "entries": [], "counts": {"queued": 12}, "table": ""}
+    answers = {}
+
+    def answer(request: httpx.Request) -> httpx.Response:
+        return httpx.Response(201 if request.method == "POST" else 200, json=answers[request.method])
+
+    said = rf"answered {re.escape(reprlib.repr(answered))}, not a sweep with its entries, counts and table$"
+    answers.update(POST=answered, GET=answered)
+    with Client(transport=httpx.MockTransport(answer)) as client:
+        for call, asked in ((lambda: client.create_sweep([{"scene_id": "s1", "object": "mic"}]), "POST /v1/sweeps"),
+                            (lambda: client.get_sweep("w1"), "GET /v1/sweeps/w1"),
+                            (lambda: client.cancel_sweep("w1"), "POST /v1/sweeps/w1/cancel")):
+            with pytest.raises(ServiceError, match=rf"^{asked}: http://127.0.0.1:8000 {said}"):
+                call()
+    monkeypatch.setattr(service, "_client", lambda args: Client(args.api, transport=httpx.MockTransport(answer)))
+    monkeypatch.setattr(service, "SWEEP_POLL_S", 0.01)
+    for command, created, asked in ((["sweep", "--scene", "s1=mic"], answered, "POST /v1/sweeps"),
+                                    (["sweep", "--scene", "s1=mic", "--wait", "--quiet"], whole, "GET /v1/sweeps/w1"),
+                                    (["cancel-sweep", "w1"], answered, "POST /v1/sweeps/w1/cancel")):
+        answers["POST"] = created
+        assert main(command) == 2
+        assert re.search(rf"^voxe {command[0]}: error: {asked}: http://127.0.0.1:8000 {said}", capsys.readouterr().err,
+                         re.MULTILINE)
+
+
 def test_an_answer_or_error_page_is_read_up_to_its_limit_only(tmp_path):
     """A JSON answer or an error page (the event stream's, a download's too) had been buffered whole however long: a
     hostile or broken server's 64 MiB (or endless) body is read to MAX_ANSWER_BYTES, then a ServiceError naming it."""
@@ -3088,7 +3130,8 @@ def test_voxe_sweep_that_cannot_write_its_out_file_keeps_the_earlier_one(tmp_pat
     sweeps = iter(["s1", "s2"])
 
     def answer(request: httpx.Request) -> httpx.Response:
-        return httpx.Response(201, json={"id": next(sweeps), "state": "queued", "entries": [], "table": ""})
+        return httpx.Response(201, json={"id": next(sweeps), "state": "queued", "entries": [], "counts": {},
+                                         "table": ""})
 
     monkeypatch.setattr(voxe_core.cli.service, "_client",
                         lambda args: Client("http://svc.test/", transport=httpx.MockTransport(answer)))

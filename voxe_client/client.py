@@ -818,16 +818,27 @@ class Client:
             body["params"] = params
         if evaluation is not None:
             body["evaluation"] = evaluation
-        return self._record("sweep", "POST", "/v1/sweeps", body, idempotency_key=_submission_key(idempotency_key))
+        return self._sweep("POST", "/v1/sweeps", body, idempotency_key=_submission_key(idempotency_key))
 
     def get_sweep(self, sweep_id: str) -> dict:
         """``GET /v1/sweeps/{id}``: the jobs' states and the summary table."""
-        return self._record("sweep", "GET", f"/v1/sweeps/{_segment(sweep_id)}")
+        return self._sweep("GET", f"/v1/sweeps/{_segment(sweep_id)}")
 
     def cancel_sweep(self, sweep_id: str) -> dict:
         """``POST /v1/sweeps/{id}/cancel``: every unfinished job of the sweep canceled (finished ones and their results
         stay); the sweep, as :meth:`get_sweep` answers it."""
-        return self._record("sweep", "POST", f"/v1/sweeps/{_segment(sweep_id)}/cancel")
+        return self._sweep("POST", f"/v1/sweeps/{_segment(sweep_id)}/cancel")
+
+    def _sweep(self, method: str, path: str, body: dict | None = None, **kwargs) -> dict:
+        """The sweep that ``method path`` answers (as :meth:`_record`); one with no list of ``entries``, object of
+        ``counts`` or string ``table`` (a proxy's partial JSON) is a ServiceError quoting it: ``voxe sweep`` had ended
+        in a KeyError traceback reading them."""
+        sweep = self._record("sweep", method, path, body, **kwargs)
+        if not (isinstance(sweep.get("entries"), list) and isinstance(sweep.get("counts"), dict)
+                and isinstance(sweep.get("table"), str)):
+            raise ServiceError(f"{method} {path}: {self.base_url} answered {reprlib.repr(sweep)}, not a sweep with its "
+                               "entries, counts and table")
+        return sweep
 
     # ------------------------------------------------------------------ webhooks
     def webhook_secret(self) -> str:
