@@ -1366,9 +1366,51 @@ def test_rays_per_step_past_the_services_bound_are_refused_before_the_system_kil
             params(rays_per_step=too_many)
 
 
+@pytest.mark.parametrize("command, limit", [(["reconstruct", "no_such_data"], 512), (["mesh-to-grid", "m.obj"], 512),
+                                            (["export-mesh", "g.safetensors", "--out", "m.ply"], 1024)])
+def test_a_resolution_past_the_services_bound_is_refused_before_it_runs_out_of_memory(command, limit, capsys):
+    """``voxe reconstruct --resolution 5000`` (or ``mesh-to-grid``'s, ``export-mesh``'s 100000) had been taken where
+    a job's reconstruction.resolution stops at 512 and its export.mesh_resolution at 1024: the grid or lattice asked
+    for was past the machine's memory. Each --resolution takes the service's bound (one constant), refused by the
+    option's name, a list's every value too; the bound passes."""
+    from api.schemas import ExportParams, ReconstructionParams
+    from pydantic import ValidationError
+
+    for value in [str(limit + 1)] + ([] if command[0] == "export-mesh" else [f"64,{limit + 1},8"]):  # (one value)
+        with pytest.raises(SystemExit) as exc:
+            main([*command, "--resolution", value])
+        assert exc.value.code == 2 and (f"argument --resolution: must be at most {limit} (the service's limit), got "
+                                        f"{limit + 1}" in capsys.readouterr().err)
+    assert _option_type(command[0], "--resolution")(str(limit)) in (limit, [limit])
+    params, setting = (ExportParams, "mesh_resolution") if command[0] == "export-mesh" else \
+        (ReconstructionParams, "resolution")  # the service's own bound, the same
+    assert getattr(params(**{setting: limit}), setting) == limit
+    with pytest.raises(ValidationError):
+        params(**{setting: limit + 1})
+
+
+def test_a_resolution_below_two_is_refused_naming_the_option_typed(sphere_file, tmp_path, capsys):
+    """It had been refused as the setting it fills: "grid resolutions must be at least 2, got [2, 2, 0]" (reconstruct,
+    mesh-to-grid --route render), "grid resolution must be >= 2 per axis" (the voxelize route), "mesh resolution must
+    be at least 2, got 1" (export-mesh): no option typed is called that."""
+    trimesh.creation.icosphere(subdivisions=1, radius=0.5).export(tmp_path / "m.obj")
+    grid = tmp_path / "g.safetensors"
+    for command, said in ((["reconstruct", str(tmp_path / "no_such_data"), "--out", str(grid), "--resolution", "2,2,0"],
+                           "--resolution must be at least 2, got [2, 2, 0]"),
+                          (["mesh-to-grid", str(tmp_path / "m.obj"), "--route", "render", "--out", str(grid),
+                            "--resolution", "2,2,0"], "--resolution must be at least 2, got [2, 2, 0]"),
+                          (["mesh-to-grid", str(tmp_path / "m.obj"), "--out", str(grid), "--resolution", "1"],
+                           "--resolution must be >= 2 per axis, got (1, 1, 1)"),
+                          (["export-mesh", str(sphere_file), "--out", str(tmp_path / "m.ply"), "--resolution", "1"],
+                           "--resolution must be at least 2, got 1")):
+        assert main(command) == 2
+        assert capsys.readouterr().err == f"voxe {command[0]}: error: {said}\n"
+    assert not grid.exists() and not (tmp_path / "m.ply").exists()
+
+
 def _integer_options() -> list[tuple[str, str]]:
     """Every (command, option) of ``voxe`` whose value is an integer: the counts, ``--seed`` and the counts the
-    service bounds (``positive_int_at_most``)."""
+    service bounds (``positive_int_at_most``, ``int_list_at_most``)."""
     import argparse
 
     from voxe_core.cli import build_parser
@@ -1378,7 +1420,7 @@ def _integer_options() -> list[tuple[str, str]]:
     return _count_options() + [
         (name, action.option_strings[0]) for name, parser in commands.choices.items() for action in parser._actions
         if action.option_strings and (action.type is seed or getattr(action.type, "__qualname__", "").startswith(
-            "positive_int_at_most."))]
+            ("positive_int_at_most.", "int_list_at_most.")))]
 
 
 def _option_type(command: str, flag: str):
@@ -1397,7 +1439,8 @@ def test_an_integer_option_takes_only_digits_as_the_service_does(command, flag, 
     Each is refused naming the option (a list's spaces around its commas aside); plain digits are still read."""
     from voxe_core.cli.common import int_list
 
-    a_list = _option_type(command, flag) is int_list
+    a_list = _option_type(command, flag) is int_list or _option_type(command, flag).__qualname__.startswith(
+        "int_list_at_most.")
     for value in ("1_0", "+5", "\uff15", "5.0", *(() if a_list else (" 5", "5 "))):
         with pytest.raises(SystemExit) as exc:
             main([command, f"{flag}={value}"])
@@ -1452,11 +1495,12 @@ def test_the_count_options_found_are_those_a_huge_value_had_failed(sphere_file, 
     """The options listed above include those that had failed unnamed; a count at the limit is taken."""
     options = _count_options()
     for option in (("turntable", "--frames"), ("turntable", "--size"), ("render", "--ring"), ("render", "--size"),
-                   ("export-mesh", "--resolution"), ("reconstruct", "--resolution"), ("reconstruct", "--iterations"),
+                   ("reconstruct", "--iterations"),
                    ("evaluate", "--views"), ("mesh-to-grid", "--size"), ("convert-grid", "--margin")):
         assert option in options
-    for option in (("reconstruct", "--rays"), ("refine", "--rays"), ("mesh-to-grid", "--rays")):  # (the service's
-        assert option in _integer_options()  # bound, tighter: test_rays_per_step_past_the_services_bound_...)
+    for option in (("reconstruct", "--rays"), ("refine", "--rays"), ("mesh-to-grid", "--rays"),  # (the service's
+                   ("export-mesh", "--resolution"), ("reconstruct", "--resolution"), ("mesh-to-grid", "--resolution")):
+        assert option in _integer_options()  # bound, tighter: test_rays_per_step_past_..., test_a_resolution_past_...
     assert main(["convert-grid", str(sphere_file), "--out", str(tmp_path / "c.safetensors"),
                  "--margin", "2147483647"]) == 0
 
@@ -2271,9 +2315,13 @@ def test_export_mesh_obj_refuses_a_material_library_it_cannot_write_before_makin
 
 
 @pytest.mark.parametrize("resolution", ["100000", "3000000"])
-def test_a_size_past_the_machines_memory_exits_2_naming_it(resolution, sphere_file, tmp_path, capsys):
+def test_a_size_past_the_machines_memory_exits_2_naming_it(resolution, sphere_file, tmp_path, monkeypatch, capsys):
     """It had been torch's RuntimeError traceback (exit 1): "can't allocate memory", and at 3000000 "Storage size
-    calculation overflowed" (a byte count past 64 bits)."""
+    calculation overflowed" (a byte count past 64 bits). (--resolution now stops at the service's 1024 first: lifted
+    here, as a library caller's is not bounded.)"""
+    import voxe_core.cli.mesh as mesh_commands
+
+    monkeypatch.setattr(mesh_commands, "MAX_MESH_RESOLUTION", 2**31 - 1)
     assert main(["export-mesh", str(sphere_file), "--out", str(tmp_path / "m.ply"), "--resolution", resolution]) == 2
     err = capsys.readouterr().err
     assert "voxe export-mesh: error: out of memory (" in err and "ask for less" in err and "Traceback" not in err
@@ -2281,8 +2329,6 @@ def test_a_size_past_the_machines_memory_exits_2_naming_it(resolution, sphere_fi
 
     def bare_memory_error(args):
         raise MemoryError()  # Python's own allocation failures carry no message
-
-    import voxe_core.cli.mesh as mesh_commands
 
     with pytest.MonkeyPatch.context() as patched:
         patched.setattr(mesh_commands, "cmd_export_mesh", bare_memory_error)

@@ -117,6 +117,14 @@ MAX_RAYS_PER_STEP = 1 << 20
 ``--rays``): ``voxe reconstruct --rays 2000000000`` had been taken, and the fit's first step killed by the system's
 out-of-memory killer (exit 137, nothing said)."""
 
+MAX_GRID_RESOLUTION = 512
+"""The finest grid a reconstruction's final stage, or a mesh's voxelization, may be (the service's bound, and the
+CLI's ``--resolution``): ``voxe reconstruct --resolution 5000`` had been taken, its grid past the machine's memory."""
+
+MAX_MESH_RESOLUTION = 1024
+"""The most lattice points per axis an exported mesh is resampled to (the service's ``mesh_resolution`` bound, and
+``voxe export-mesh --resolution``'s)."""
+
 REFINE_BACKPROJECTION_STRIDE = 2
 """The back-projection start reads every n-th pixel row and column of each view (maps are a coarse lattice
 upsampled)."""

@@ -302,6 +302,17 @@ def positive_int_at_most(limit: int) -> Callable[[str], int]:
     return whole_number
 
 
+def int_list_at_most(limit: int) -> Callable[[str], list[int]]:
+    """The option type of an ``int_list`` whose values are each at most ``limit``, the service's bound for the same
+    parameter (as :func:`positive_int_at_most`): ``voxe reconstruct --resolution 5000`` had been taken."""
+    def integers(text: str) -> list[int]:
+        values = int_list(text)
+        if max(values) > limit:
+            raise argparse.ArgumentTypeError(f"must be at most {limit} (the service's limit), got {max(values)}")
+        return values
+    return integers
+
+
 _DECIMAL = re.compile(r"[+-]?([0-9]+\.?[0-9]*|\.[0-9]+)([eE][+-]?[0-9]+)?")
 
 
@@ -342,14 +353,16 @@ def finite_float(text: str) -> float:
 def said_by_option(options: dict[str, str]) -> Iterator[None]:
     """The config's range checks (their one source) refusing a setting of ``options`` (setting: option), said naming
     the option typed: ``voxe edit --reg-weight -1`` had been refused as "regulariser_weight must be >= 0 ...", a
-    setting no option is called (finite_float names it only for a value that is no finite number)."""
+    setting no option is called (finite_float names it only for a value that is no finite number). A setting may be
+    said in words ("grid resolutions must be at least 2")."""
     try:
         yield
     except ValueError as exc:
-        setting, _, rule = str(exc).partition(" ")
-        if setting not in options or not rule.startswith("must "):
+        said = str(exc)
+        setting = next((setting for setting in options if said.startswith(f"{setting} must ")), None)
+        if setting is None:
             raise
-        raise ValueError(f"{options[setting]} {rule}") from None
+        raise ValueError(f"{options[setting]} {said[len(setting) + 1:]}") from None
 
 
 def non_negative_int(text: str) -> int:

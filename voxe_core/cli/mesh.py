@@ -7,11 +7,11 @@ import sys
 from pathlib import Path
 
 from voxe_core.cli.common import (
-    EXIT_INTERRUPTED, add_device_argument, add_grid_output_arguments, check_device, finite_float, int_list, positive_int,
-    positive_int_at_most, run_stage, seed, tensor_file, writable_file,
+    EXIT_INTERRUPTED, add_device_argument, add_grid_output_arguments, check_device, finite_float, int_list,
+    int_list_at_most, positive_int, positive_int_at_most, run_stage, said_by_option, seed, tensor_file, writable_file,
 )
-from voxe_core.cli.reconstruct import recipe_params
-from voxe_core.constants import MAX_RAYS_PER_STEP, MESH_SUFFIXES
+from voxe_core.cli.reconstruct import RESOLUTION_SETTINGS, recipe_params
+from voxe_core.constants import MAX_GRID_RESOLUTION, MAX_MESH_RESOLUTION, MAX_RAYS_PER_STEP, MESH_SUFFIXES
 from voxe_core.presets import (
     DOWNSAMPLE, MESH_VIEW_SIZE, MESH_VIEWS, RECONSTRUCTION_PRESET, RECONSTRUCTION_PRESETS, SEED, ExportConfig,
     reconstruct_config,
@@ -25,8 +25,9 @@ def add_parsers(commands, common) -> None:
     mesh.add_argument("grid", type=Path, metavar="GRID")
     mesh.add_argument("--out", type=Path, required=True, help="mesh file, .ply, .glb or .obj")
     mesh.add_argument("--level", type=finite_float, default=None, help="surface density (default ln 2 / voxel size)")
-    mesh.add_argument("--resolution", type=positive_int, default=ExportConfig.mesh_resolution,
-                      help="resample to N points per axis")
+    mesh.add_argument("--resolution", type=positive_int_at_most(MAX_MESH_RESOLUTION),
+                      default=ExportConfig.mesh_resolution,
+                      help=f"resample to N points per axis (at most {MAX_MESH_RESOLUTION})")
     add_device_argument(mesh)
     mesh.set_defaults(run=cmd_export_mesh)
 
@@ -49,9 +50,9 @@ def add_parsers(commands, common) -> None:
                          f"service's fit sees, its {MESH_VIEW_SIZE} px views loaded at 1/{DOWNSAMPLE})")
     mg.add_argument("--preset", choices=RECONSTRUCTION_PRESETS, default=RECONSTRUCTION_PRESET,
                     help="render route: reconstruction preset")
-    mg.add_argument("--resolution", type=int_list, default=None, metavar="N[,N...]",
+    mg.add_argument("--resolution", type=int_list_at_most(MAX_GRID_RESOLUTION), default=None, metavar="N[,N...]",
                     help="grid resolution (voxelize: default the preset's final one, as the service's; render: as "
-                         "voxe reconstruct)")
+                         f"voxe reconstruct; at most {MAX_GRID_RESOLUTION})")
     mg.add_argument("--iterations", type=int_list, default=None, metavar="N[,N...]", help="render route: as voxe reconstruct")
     mg.add_argument("--rays", type=positive_int_at_most(MAX_RAYS_PER_STEP), default=None,
                     help=f"render route: rays per step (at most {MAX_RAYS_PER_STEP})")
@@ -72,7 +73,8 @@ def cmd_export_mesh(args) -> int:
     if args.out.suffix.lower() == ".obj":  # and the material library beside it, before the mesh is made
         writable_file(Path(os.path.realpath(args.out)).with_suffix(".mtl"))  # (save_obj's: a symlink's target's)
     grid = load_grid(args.grid).to(device)  # the density lattice is sampled there; marching cubes runs on the CPU
-    mesh = extract_mesh(grid, level=args.level, resolution=args.resolution)
+    with said_by_option({"mesh resolution": "--resolution"}):
+        mesh = extract_mesh(grid, level=args.level, resolution=args.resolution)
     save_mesh(mesh, args.out)
     print(f"wrote {args.out}: {len(mesh.vertices)} vertices, {len(mesh.faces)} faces")
     return 0
@@ -96,10 +98,12 @@ def cmd_mesh_to_grid(args) -> int:
             raise ValueError(f"--resolution takes one value for the voxelize route, got {len(args.resolution)}")
         fit = reconstruct_config({**recipe_params(args), "resolution": None, "iterations": None})  # (render's)
         resolution = fit.resolutions[-1] if args.resolution is None else args.resolution[0]
-        grid = voxelize(mesh, VoxelizeConfig(resolution=resolution, bbox_min=fit.bbox_min, bbox_max=fit.bbox_max,
-                                             seed=args.seed))
+        with said_by_option(RESOLUTION_SETTINGS):
+            grid = voxelize(mesh, VoxelizeConfig(resolution=resolution, bbox_min=fit.bbox_min, bbox_max=fit.bbox_max,
+                                                 seed=args.seed))
     else:
-        config = reconstruct_config(recipe_params(args))
+        with said_by_option(RESOLUTION_SETTINGS):
+            config = reconstruct_config(recipe_params(args))
         cameras = hemisphere_cameras(MESH_VIEWS if args.views is None else args.views,
                                      MESH_VIEW_SIZE // DOWNSAMPLE if args.size is None else args.size, args.seed)
         images, _ = render_mesh_views(mesh, cameras)

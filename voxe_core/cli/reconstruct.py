@@ -8,10 +8,10 @@ from pathlib import Path
 
 from voxe_core.cli.common import (
     EXIT_INTERRUPTED, add_device_argument, add_grid_output_arguments, add_view_arguments, check_device, int_list,
-    load_views, one_or_list, positive_int, positive_int_at_most, run_stage, seed, tensor_file, view_params,
-    writable_file,
+    int_list_at_most, load_views, one_or_list, positive_int, positive_int_at_most, run_stage, said_by_option, seed,
+    tensor_file, view_params, writable_file,
 )
-from voxe_core.constants import MAX_RAYS_PER_STEP
+from voxe_core.constants import MAX_GRID_RESOLUTION, MAX_RAYS_PER_STEP
 from voxe_core.presets import (
     BACKBONE,
     BACKBONE_CHOICES,
@@ -51,13 +51,19 @@ def add_recipe_arguments(parser: argparse.ArgumentParser) -> None:
                         help="fast: the CPU budget (40→80→128); paper: the authors' 20→40→80→160 × 500; scene: "
                              "the CPU budget of a scene-backbone fit (48→96); default: scene for a scene-backbone "
                              f"fit, {RECONSTRUCTION_PRESET} otherwise")
-    parser.add_argument("--resolution", type=int_list, default=None, metavar="N[,N...]",
-                        help="final grid resolution (earlier stages scaled in proportion), or one per stage")
+    parser.add_argument("--resolution", type=int_list_at_most(MAX_GRID_RESOLUTION), default=None, metavar="N[,N...]",
+                        help="final grid resolution (earlier stages scaled in proportion), or one per stage (at most "
+                             f"{MAX_GRID_RESOLUTION})")
     parser.add_argument("--iterations", type=int_list, default=None, metavar="N[,N...]",
                         help="iterations of the final stage, or one per stage")
     parser.add_argument("--rays", type=positive_int_at_most(MAX_RAYS_PER_STEP), default=None,
                         help=f"rays per step (at most {MAX_RAYS_PER_STEP})")
     parser.add_argument("--seed", type=seed, default=SEED)
+
+
+RESOLUTION_SETTINGS = {"grid resolutions": "--resolution", "grid resolution": "--resolution"}
+"""The grid's and the fit's own refusals of a ``--resolution`` (``said_by_option``): "grid resolutions must be at
+least 2, got [2, 2, 0]" had named no option typed."""
 
 
 def recipe_params(args: argparse.Namespace) -> dict:
@@ -86,7 +92,8 @@ def cmd_reconstruct(args) -> int:
         if path is not None:
             writable_file(path)
     params = reconstruction_params(job_params(args))
-    reconstruction_key(params)  # iterations that fit no backbone's preset are refused before any data is read
+    with said_by_option(RESOLUTION_SETTINGS):
+        reconstruction_key(params)  # iterations that fit no backbone's preset are refused before any data is read
     if args.resume is not None:  # as is a --resume that is no checkpoint (missing, a grid: said after the data)
         load_header(args.resume, CHECKPOINT_KIND, CHECKPOINT_FORMAT_VERSION)
     scene = load_views(args)
