@@ -1896,6 +1896,55 @@ def test_render_names_views_of_the_longest_image_names_within_the_file_system_s_
     assert [v["file"] for v in json.loads((out / "metrics.json").read_text())["per_view"]] == names[:3]
 
 
+def test_a_png_gif_ply_or_obj_that_the_disk_cannot_hold_is_named_in_the_error(sphere_file, tmp_path):
+    """A full disk under the PNG, GIF, PLY and OBJ writers (a write or a flush, which name no file) had been said as
+    "[Errno 28] No space left on device" alone, no file named; an OBJ's as its .mtl's, had it been named. Here the
+    kernel cuts each write at a file size limit (RLIMIT_FSIZE: EFBIG, raised as ENOSPC is, naming no file), in a
+    process of its own: each error names the file being written, and nothing of it is left."""
+    script = (
+        "import json, resource, signal, sys\n"
+        "from voxe_core.cli import main\n"
+        "import voxe_core.export, PIL.PngImagePlugin, PIL.GifImagePlugin, trimesh\n"  # (before the limit)
+        "signal.signal(signal.SIGXFSZ, signal.SIG_IGN)\n"
+        "resource.setrlimit(resource.RLIMIT_FSIZE, (2048, resource.getrlimit(resource.RLIMIT_FSIZE)[1]))\n"
+        "for argv in json.loads(sys.argv[1]):\n"
+        "    print(main(argv), flush=True)\n"
+    )
+    grid = str(sphere_file)
+    commands = [["render", grid, "--ring", "1", "--size", "256", "--out", str(tmp_path / "views"), "-q"],
+                ["turntable", grid, "--frames", "16", "--size", "256", "--out", str(tmp_path / "t.gif"), "-q"],
+                ["export-mesh", grid, "--out", str(tmp_path / "m.ply")],
+                ["export-mesh", grid, "--out", str(tmp_path / "m.obj")]]
+    result = subprocess.run([sys.executable, "-c", script, json.dumps(commands)], cwd=REPO, capture_output=True,
+                            text=True, timeout=300)
+    assert result.stdout.split() == ["2"] * 4, result.stderr
+    err = result.stderr.splitlines()
+    assert re.fullmatch(rf"voxe render: error: \[Errno 27\] File too large: '{re.escape(str(tmp_path))}/views/"
+                        r"[^']*000\.png'", err[0]), err
+    assert err[1:] == [f"voxe {name}: error: [Errno 27] File too large: '{tmp_path / file}'" for name, file in
+                       (("turntable", "t.gif"), ("export-mesh", "m.ply"), ("export-mesh", "m.obj"))]
+    assert sorted(p.name for p in tmp_path.iterdir()) == [sphere_file.name]
+
+
+def test_a_full_disk_under_a_writer_names_its_file(tmp_path, monkeypatch):
+    """ENOSPC as a write raises it, naming no file: the file written is named; the earlier one stays whole."""
+    from voxe_core.export import save_png
+
+    target = tmp_path / "view.png"
+    save_png(target, np.zeros((4, 4, 3), np.uint8))
+    earlier = target.read_bytes()
+
+    def disk_full(fd):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(os, "fsync", disk_full)
+    with pytest.raises(OSError) as error:
+        save_png(target, np.ones((4, 4, 3), np.uint8))
+    assert (error.value.errno, error.value.filename) == (errno.ENOSPC, str(target))
+    assert str(error.value) == f"[Errno 28] No space left on device: '{target}'"
+    assert target.read_bytes() == earlier and [p.name for p in tmp_path.iterdir()] == ["view.png"]
+
+
 def test_render_metrics_that_cannot_be_written_keep_the_earlier_file(tmp_path, fill_disk, capsys):
     """A full disk while metrics.json was written had left it torn, the earlier render's destroyed: it is written
     whole or not at all."""

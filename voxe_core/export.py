@@ -29,7 +29,7 @@ import torch
 from voxe_core.cameras import Cameras, ring_poses
 from voxe_core.constants import MESH_SUFFIXES, NERF_SYNTHETIC_FOV_X, NERF_SYNTHETIC_RADIUS, VIDEO_SUFFIXES
 from voxe_core.devices import PeakMemory, full_precision, resolve_device
-from voxe_core.files import replacing
+from voxe_core.files import naming_write_failures, replacing
 from voxe_core.grid import VoxelGrid
 from voxe_core.presets import check_video_fps
 from voxe_core.progress import Callbacks, Progress
@@ -713,13 +713,14 @@ def save_obj(mesh, path: str | os.PathLike) -> Path:
     # MTL that could not be written, a folder of its name, had left a new OBJ over the earlier one). The OBJ's one
     # text that may not be ASCII is the library's file name: written in the bytes the file system names it by (the
     # locale's encoding had refused `--out café.obj` under an ASCII locale)
-    with (replacing(path) as partial, replacing(mtl) as mtl_partial,
-          open(partial, "w", encoding=sys.getfilesystemencoding(), errors=sys.getfilesystemencodeerrors()) as out):
+    with replacing(path) as partial, replacing(mtl) as mtl_partial:
         mtl_partial.write_text(f"newmtl voxe\nKd {kd[0]:.6f} {kd[1]:.6f} {kd[2]:.6f}\nKa 0 0 0\nKs 0 0 0\nd 1\n"
                                "illum 1\n", encoding="utf-8")
-        out.write(f"# Vox-E mesh: {len(vertices)} vertices, {len(faces)} faces\nmtllib {mtl.name}\nusemtl voxe\n")
-        # Positions to 9 significant digits (float32's, as PLY and GLB hold them) at any scale: 6 decimals had
-        # moved a mesh in a 1e-5 box by 5 % of its size. Colours in [0, 1]: 6 decimals are exact for 8 bits.
-        np.savetxt(out, np.hstack([vertices, rgb]), fmt="v %.9g %.9g %.9g %.6f %.6f %.6f")
-        np.savetxt(out, faces, fmt="f %d %d %d")
+        with (naming_write_failures(partial),  # (the OBJ's full disk, not the MTL's, whose replacing is innermost)
+              open(partial, "w", encoding=sys.getfilesystemencoding(), errors=sys.getfilesystemencodeerrors()) as out):
+            out.write(f"# Vox-E mesh: {len(vertices)} vertices, {len(faces)} faces\nmtllib {mtl.name}\nusemtl voxe\n")
+            # Positions to 9 significant digits (float32's, as PLY and GLB hold them) at any scale: 6 decimals had
+            # moved a mesh in a 1e-5 box by 5 % of its size. Colours in [0, 1]: 6 decimals are exact for 8 bits.
+            np.savetxt(out, np.hstack([vertices, rgb]), fmt="v %.9g %.9g %.9g %.6f %.6f %.6f")
+            np.savetxt(out, faces, fmt="f %d %d %d")
     return path

@@ -20,6 +20,9 @@ SPECIAL_FILES = ((stat.S_ISFIFO, "a FIFO (named pipe)"), (stat.S_ISSOCK, "a sock
 """What a path that is neither a regular file nor a folder is, by its mode."""
 NAME_MAX = 255
 """The longest file name, in bytes, of the filesystems written to (ext4, XFS, Btrfs, tmpfs)."""
+WRITE_FAILURES = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EIO)
+"""The errnos of a file's bytes that could not be written (a full disk or quota, a file past its size limit, a
+failing disk), which a write or a flush raises naming no file."""
 DEAD_PARTIAL_AGE_S = 60.0
 """How long ago an unlocked partial file must have been written last to be taken for a dead writer's: a writer
 locks its own just after creating it, and safetensors renames its own file in place of it, unlocked, just before
@@ -147,13 +150,28 @@ def flush_to_disk(path: Path) -> None:
 
 
 @contextmanager
+def naming_write_failures(path: Path) -> Iterator[None]:
+    """A failure of the block to write bytes (:data:`WRITE_FAILURES`) that names no file, as a write or a flush
+    raises it, named as ``path``'s, the file the block writes: a full disk had been said as "[Errno 28] No space left
+    on device" alone. Another OSError goes on as it is."""
+    try:
+        yield
+    except OSError as exc:
+        if exc.filename is not None or exc.errno not in WRITE_FAILURES:
+            raise
+        raise OSError(exc.errno, exc.strerror, str(path)) from None
+
+
+@contextmanager
 def replacing(path: str | os.PathLike) -> Iterator[Path]:
     """A temporary path beside ``path`` to write into; when the block ends without an error it replaces ``path``
     in one rename, its bytes flushed to the disk first (:func:`flush_to_disk`), otherwise it is removed and ``path``
     is left as it was. It keeps ``path``'s suffix (writers pick their format by it), is hidden (:func:`partial_path`)
     from listings of the folder, and is this writer's own (a random token in its name: two writers of one file at once had shared one partial file, each writing over the
     other's bytes, the first to finish renaming that mix into place and the other failing "No such file"). An OSError
-    about that temporary file (a missing folder, no permission) names ``path``, the file the caller asked for.
+    about that temporary file (a missing folder, no permission) names ``path``, the file the caller asked for, as
+    does a failure to write bytes that names no file (:func:`naming_write_failures`: a full disk under a PNG, GIF
+    or PLY writer); a block writing two files names the other's itself.
     A file replaced keeps its permissions, and a symlink stays one, its target replaced (the new file had taken the
     umask's mode, a 0600 file becoming readable by all, and the link had become a file of its own).
     The partial file is made here and held locked while the block runs, so that a writer killed mid-write is told
@@ -184,8 +202,9 @@ def replacing(path: str | os.PathLike) -> Iterator[Path]:
         fd = os.open(partial, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)  # the writer writes into it in place
         if locked(fd):
             remove_dead_partials(target)
-        yield partial
-        flush_to_disk(partial)
+        with naming_write_failures(partial):
+            yield partial
+            flush_to_disk(partial)
         take_the_mode_of(target, partial)
         os.replace(partial, target)
     except OSError as exc:
