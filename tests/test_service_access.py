@@ -1553,6 +1553,20 @@ def test_readyz_shows_its_details_only_to_a_key_holder(auth_client, root):  # no
     assert "url" in checks["broker"] and "backend" in checks["storage"] and "model_availability" in detailed.json()
 
 
+def test_readyz_sent_two_different_keys_answers_its_status_not_a_401(auth_client):
+    """/readyz needs no key, but a request carrying two different keys (a probe's X-API-Key and a proxy's Bearer) was
+    answered /v1's 401 "2 different API keys sent", a load balancer then taking a ready service for a failed one. It
+    now answers its status and code as to a caller sending none, the details withheld and the reason said."""
+    _, token = _create_key("operator")
+    anonymous = auth_client.get("/readyz")
+    both = auth_client.get("/readyz", headers={**bearer(token), "X-API-Key": "voxe_000000000000_" + "y" * 43})
+    assert both.status_code == anonymous.status_code == 503  # (no worker here)
+    assert both.json()["checks"] == anonymous.json()["checks"]
+    assert both.json()["details"] == ("2 different API keys sent (1 Authorization: Bearer line and 1 X-API-Key line): "
+                                      "send one key for each check's details and the models' availability")
+    assert "model_availability" not in both.json()
+
+
 def test_readyz_with_the_database_down_does_not_tell_a_key_holder_to_send_a_key(auth_client, monkeypatch):
     """With the database down, /readyz cannot check a key, so it shows no details: it told an operator presenting
     their live key to "send an API key", the one they had sent. It now says the key sent could not be checked, and

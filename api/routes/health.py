@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import time
 from concurrent.futures import ThreadPoolExecutor
-from fastapi import APIRouter, Request
+from fastapi import APIRouter, HTTPException, Request
 from fastapi.responses import JSONResponse
 from sqlalchemy import text
 
@@ -87,12 +87,18 @@ def _hidden_because(request: Request, settings: Settings) -> str | None:
     (the storage path or bucket, the broker's URL, worker hostnames, the errors' text), and /readyz needs no key: a
     load balancer needs only the status and which check failed. With authentication off they had been shown to any
     caller, one a proxy relayed or a page of another site too, which /v1 refuses (``not_local``). A key that cannot be
-    checked (the database down) is told so: "send an API key" had answered the operator who sent theirs."""
+    checked (the database down) is told so: "send an API key" had answered the operator who sent theirs. Two
+    different keys sent are not checked and are said so, not answered /v1's 401: the probe needs no key, and a probe
+    or proxy adding a header had failed it with "2 different API keys sent"."""
     if not settings.auth_enabled:
         why = not_local(request.scope, settings)
         return None if why is None else ("authentication is off, so each check's details and the models' availability "
                                          f"are shown only to loopback connections from this machine, and {why}")
-    if not (token := presented_token(request)):
+    try:
+        token = presented_token(request)
+    except HTTPException as exc:
+        return f"{exc.detail} for each check's details and the models' availability"
+    if not token:
         return _ASK_FOR_A_KEY
     try:
         with session_scope() as session:
