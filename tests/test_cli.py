@@ -2480,7 +2480,7 @@ def test_edit_with_missing_weights_names_the_model_and_how_to_provide_it(sphere_
     assert main([*edit, "voxe-test/no-such-sd"]) == 2
     err = capsys.readouterr().err
     assert ("voxe edit: model not available: Stable Diffusion weights 'voxe-test/no-such-sd' are not available "
-            "offline: download them once with `huggingface-cli download voxe-test/no-such-sd`") in err
+            "offline: download them once with `hf download voxe-test/no-such-sd --include model_index.json ") in err
     assert "point HF_HOME at that cache, or pass a local folder in the diffusers layout" in err
     (tmp_path / "models" / "sd").mkdir(parents=True)
     for folder in ("./models/gone", "./models/sd"):

@@ -16,7 +16,7 @@ import torch
 from voxe_core.constants import ATTENTION_MODEL_ID, SDS_MODEL_ID
 from voxe_core.guidance import Guidance
 from voxe_core.guidance.attention import AttentionStore, CrossAttentionCapture
-from voxe_core.guidance.loading import ModelNotAvailableError
+from voxe_core.guidance.loading import ModelNotAvailableError, download_command
 from voxe_core.guidance.prompts import TEXT_ENCODER_TOKENS, clip_pieces, edit_prompt, tokens_at_least, view_word
 from voxe_core.guidance.sds import StableDiffusionGuidance
 from voxe_core.tiny_sd import build_tiny_stable_diffusion
@@ -546,8 +546,8 @@ def test_a_cached_snapshot_missing_a_part_is_told_which_before_loading_as_a_fold
     monkeypatch.setattr(UNet2DConditionModel, "from_pretrained", lambda *a, **k: pytest.fail("loading was tried"))
     with pytest.raises(ModelNotAvailableError) as missing:
         load_stable_diffusion("owner/sd", torch.float32, local_files_only=True, revision=revision)
-    download = "hf download owner/sd" + (" --revision v2" if revision else "")
-    assert f"not available offline: download them once with `huggingface-cli {download[3:]}`" in str(missing.value)
+    download = download_command("owner/sd", revision=revision)
+    assert f"not available offline: download them once with `{download}` on a machine" in str(missing.value)
     assert str(missing.value).endswith(f"Underlying error: FileNotFoundError: its snapshot in the cache ({snapshot}) "
                                        "lacks unet/config.json, weights in unet/, weights in vae/")
     assert not diffusers_model_present("owner/sd", revision)
@@ -575,7 +575,7 @@ def test_a_cached_model_whose_weights_cannot_be_read_is_told_to_be_fetched_again
     assert diffusers_model_present("owner/sd")
     told = ("Stable Diffusion weights 'owner/sd' are in the Hugging Face cache (HF_HOME) but could not be read: a file "
             "of them is damaged (a download cut short, a disk error) or not this model's; download them again with "
-            "`hf download owner/sd --force-download`. Underlying error: ")
+            f"`{download_command('owner/sd')} --force-download`. Underlying error: ")
 
     def damaged(*args, **kwargs):  # (diffusers' answer for that file, loading it from the cache)
         raise OSError(f"Unable to load weights from checkpoint file for '{weights}'")
@@ -590,7 +590,9 @@ def test_a_cached_model_whose_weights_cannot_be_read_is_told_to_be_fetched_again
     (repo / "refs" / "v2").write_text("abc123")  # a revision loaded: its download is told, not main's again
     with pytest.raises(ModelNotAvailableError) as revision:
         load_stable_diffusion("owner/sd", torch.float32, local_files_only=True, revision="v2")
-    assert str(revision.value).startswith(told.replace("owner/sd --force", "owner/sd --revision v2 --force"))
+    assert str(revision.value).startswith(told.replace(download_command("owner/sd"),
+                                                       download_command("owner/sd", revision="v2")))
+    assert "hf download owner/sd --revision v2 --include " in str(revision.value)
 
 
 def test_a_single_file_checkpoint_is_told_to_be_converted_not_missing(tmp_path):
@@ -1176,3 +1178,100 @@ def test_the_transformers_required_is_the_one_the_offline_word_check_reads_as():
     project = tomllib.loads((Path(__file__).resolve().parents[1] / "pyproject.toml").read_text())["project"]
     required = next(r for r in map(Requirement, project["dependencies"]) if r.name == "transformers")
     assert not required.specifier.contains("4.57.3") and required.specifier.contains(version("transformers"))
+
+
+SD2_BASE_FILES = [  # stabilityai/stable-diffusion-2-base's listing: variants, Flax and single-file checkpoints beside
+    ".gitattributes", "README.md", "model_index.json", "512-base-ema.ckpt", "512-base-ema.safetensors",
+    "feature_extractor/preprocessor_config.json", "scheduler/scheduler_config.json",
+    "text_encoder/config.json", "text_encoder/model.safetensors", "text_encoder/model.fp16.safetensors",
+    "text_encoder/pytorch_model.bin", "text_encoder/pytorch_model.fp16.bin", "text_encoder/flax_model.msgpack",
+    "tokenizer/merges.txt", "tokenizer/special_tokens_map.json", "tokenizer/tokenizer_config.json", "tokenizer/vocab.json",
+    *(f"{part}/{name}" for part in ("unet", "vae") for name in (
+        "config.json", "diffusion_pytorch_model.safetensors", "diffusion_pytorch_model.fp16.safetensors",
+        "diffusion_pytorch_model.bin", "diffusion_pytorch_model.fp16.bin", "diffusion_flax_model.msgpack",
+        "diffusion_pytorch_model.non_ema.safetensors")),
+]
+
+
+def _advised(command: str) -> dict:
+    """What the `hf` CLI makes of an advised `hf download` (its own parser; snapshot_download's arguments caught)."""
+    import shlex
+
+    import huggingface_hub.cli.download as download
+    from click.testing import CliRunner
+    from huggingface_hub.cli.hf import app
+
+    asked = {}
+    real, download.snapshot_download = download.snapshot_download, lambda **kwargs: asked.update(kwargs) or "/dev/null"
+    try:
+        assert CliRunner().invoke(app, shlex.split(command)[1:]).exit_code == 0
+    finally:
+        download.snapshot_download = real
+    return asked
+
+
+def test_the_advised_download_fetches_the_files_loading_reads_not_the_whole_repository(tiny_path):
+    """`hf download stabilityai/stable-diffusion-2-base` had been advised (README, docker files, the not-available
+    errors): it fetches the whole repository, fp16, non-EMA, Flax and single-file checkpoints, tens of GB. The advice
+    now names loading's files (files_loaded, which the first-download size counts), as the `hf` CLI reads it."""
+    from huggingface_hub.utils import filter_repo_objects
+
+    from voxe_core.guidance.loading import download_command, files_loaded, not_available_message
+
+    asked = _advised(download_command("owner/sd", revision="v2"))
+    assert (asked["repo_id"], asked["revision"]) == ("owner/sd", "v2")
+
+    def selected(names):
+        return sorted(filter_repo_objects(names, allow_patterns=asked["allow_patterns"],
+                                          ignore_patterns=asked["ignore_patterns"]))
+
+    tiny = sorted(str(p.relative_to(tiny_path)) for p in tiny_path.rglob("*") if p.is_file())
+    assert selected(tiny) == sorted(files_loaded(tiny)) and "unet/diffusion_pytorch_model.safetensors" in tiny
+    extra = set(selected(SD2_BASE_FILES)) - set(files_loaded(SD2_BASE_FILES))
+    assert set(files_loaded(SD2_BASE_FILES)) <= set(selected(SD2_BASE_FILES))
+    # Only the torch archives beside the safetensors loading reads: no variant, Flax, checkpoint or other folder
+    assert extra == {"unet/diffusion_pytorch_model.bin", "vae/diffusion_pytorch_model.bin", "text_encoder/pytorch_model.bin"}
+    sharded = ["unet/config.json", "unet/diffusion_pytorch_model.safetensors.index.json",
+               "unet/diffusion_pytorch_model-00001-of-00002.safetensors",
+               "unet/diffusion_pytorch_model-00002-of-00002.safetensors",
+               "unet/diffusion_pytorch_model-00001-of-00002.fp16.safetensors"]
+    assert selected(sharded) == sorted(files_loaded(sharded))
+    for offline in (True, False):
+        assert f"`{download_command('owner/sd', revision='v2')}`" in not_available_message(
+            "owner/sd", None, offline=offline, revision="v2")
+
+
+def test_the_advised_clip_download_fetches_its_loadings_files():
+    """The CLIP model's advice (evaluation's error, the 409 naming a missing model) had been the whole repository too
+    (openai/clip-vit-base-patch32: TensorFlow and Flax weights beside): now the files its loading checks."""
+    from huggingface_hub.utils import filter_repo_objects
+
+    from voxe_core.evaluate import _clip_not_available
+    from voxe_core.guidance.loading import download_command
+    from voxe_service.model_inventory import how_to_provide, how_to_repair
+
+    listing = [".gitattributes", "README.md", "config.json", "flax_model.msgpack", "merges.txt", "model.safetensors",
+               "model.fp16.safetensors", "preprocessor_config.json", "special_tokens_map.json", "tf_model.h5",
+               "tokenizer.json", "tokenizer_config.json", "vocab.json"]
+    asked = _advised(download_command("openai/clip-vit-base-patch32", clip=True))
+    assert sorted(filter_repo_objects(listing, allow_patterns=asked["allow_patterns"],
+                                      ignore_patterns=asked["ignore_patterns"])) == [
+        "config.json", "merges.txt", "model.safetensors", "preprocessor_config.json", "special_tokens_map.json",
+        "tokenizer.json", "tokenizer_config.json", "vocab.json"]
+    clip = download_command("owner/clip", clip=True)
+    assert f"`{clip}`" in _clip_not_available("owner/clip", "x") and f"`{clip}`" in how_to_provide("clip", "owner/clip")
+    assert f"`{clip} --force-download`" in how_to_repair("clip", "owner/clip")
+    assert f"`{download_command('owner/sd')}`" in how_to_provide("attention", "owner/sd")
+
+
+def test_the_docs_advise_the_download_loading_reads():
+    """README, docker/env.example and docker-compose.yml advise the same command the code gives, not a bare one."""
+    from pathlib import Path
+
+    from voxe_core.guidance.loading import download_command
+
+    root = Path(__file__).resolve().parents[1]
+    for doc in ("README.md", "docker/env.example", "docker-compose.yml"):
+        text = (root / doc).read_text(encoding="utf-8")
+        assert f"worker {download_command(SDS_MODEL_ID)}" in text, doc
+        assert f"worker hf download {SDS_MODEL_ID}\n" not in text and f"worker hf download {SDS_MODEL_ID}`" not in text

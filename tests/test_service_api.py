@@ -2373,6 +2373,7 @@ def test_missing_model_fails_the_job_with_a_clear_message(root, monkeypatch, dat
 
     from api.main import create_app
     from voxe_core.constants import SDS_MODEL_ID
+    from voxe_core.guidance.loading import download_command
     from voxe_service.db import session_scope
     from voxe_service.models import Job
     from worker import tasks
@@ -2387,7 +2388,7 @@ def test_missing_model_fails_the_job_with_a_clear_message(root, monkeypatch, dat
         assert result["state"] == "failed"
         failed = client.get(f"/v1/jobs/{job['id']}").json()
         assert failed["state"] == "failed" and failed["finished_at"]
-        for part in (SDS_MODEL_ID, "not available offline", "huggingface-cli download", "HF_HOME",
+        for part in (SDS_MODEL_ID, "not available offline", f"`{download_command(SDS_MODEL_ID)}`", "HF_HOME",
                      "VOXE_SDS_MODEL=tiny"):
             assert part in failed["error"], failed["error"]
         # The rest of the chain sees a finished job and does nothing.

@@ -13,7 +13,8 @@ from sqlalchemy import select
 
 from test_service_api import client, dataset, make_scene, root  # noqa: F401 - the service fixtures
 from voxe_core.constants import INCEPTION_FILE
-from voxe_core.guidance.loading import CLIP_FILES, CLIP_TOKENIZERS, DIFFUSERS_FILES, diffusers_model_present, model_file
+from voxe_core.guidance.loading import (CLIP_FILES, CLIP_TOKENIZERS, DIFFUSERS_FILES, diffusers_model_present,
+                                       download_command, model_file)
 from voxe_core.tiny_eval import build_tiny_inception
 from voxe_service.model_inventory import ROLES, check_models, unavailable_models
 
@@ -500,7 +501,7 @@ def test_a_local_job_whose_attention_tokenizer_cannot_be_read_fails_at_the_start
     # `hf download` keeps a cached file as it is: the copy is replaced (a hub id: downloaded with --force-download)
     assert f"replace the folder {str(damaged)!r} on the workers with an intact copy" in error and "hf download" not in error
     hub = how_to_repair("attention", "owner/model")
-    assert "`hf download owner/model --force-download`" in hub and "delete its folder there" in hub
+    assert f"`{download_command('owner/model')} --force-download`" in hub and "delete its folder there" in hub
 
 
 def test_migration_0006_adds_the_models_column_and_removes_it(tmp_path):

@@ -47,8 +47,8 @@ from voxe_core.devices import PeakMemory, full_precision, resolve_device
 from voxe_core.export import iter_views, render_views, to_uint8, turntable_cameras
 from voxe_core.grid import VoxelGrid
 from voxe_core.guidance.loading import (
-    ModelNotAvailableError, is_out_of_memory, load_clip_tokenizer, loading_errors, local_path, no_folder_note,
-    offline_env, tiny_model_note, tokenizer_fits,
+    ModelNotAvailableError, download_command, is_out_of_memory, load_clip_tokenizer, loading_errors, local_path,
+    no_folder_note, offline_env, tiny_model_note, tokenizer_fits,
 )
 from voxe_core.guidance.prompts import check_text_length, edit_prompt, tokens_read
 from voxe_core.metrics import PSNR_CAP_DB, SSIM_WINDOW, psnr, ssim
@@ -409,7 +409,8 @@ def _clip_not_available(model_id: str, cause: str) -> str:
         return f"CLIP weights '{model_id}' are not available: {tiny_model_note(build)}."
     remedy = ("that local folder must hold a whole CLIPModel with its tokenizer and image processor"
               if local_path(model_id) is not None else
-              f"download them once with `hf download {model_id}` on a machine with internet and point HF_HOME at "
+              f"download them once with `{download_command(model_id, clip=True)}` on a machine with internet and "
+              "point HF_HOME at "
               "that cache, or pass a local folder holding a CLIPModel with its tokenizer and image processor")
     return (f"CLIP weights '{model_id}' are not available{no_folder_note(model_id)}: {remedy}. Underlying error: "
             f"{' '.join(cause.split())[:300]}")

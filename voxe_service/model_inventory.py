@@ -22,7 +22,7 @@ from dataclasses import dataclass
 
 from voxe_core.constants import INCEPTION_FILE, inception_path
 from voxe_core.guidance.loading import (CLIP_LAYOUT, DIFFUSERS_LAYOUT, clip_model_present, diffusers_model_present,
-                                       local_path)
+                                       download_command, local_path)
 from voxe_service.models import EVALUATE
 from voxe_service.settings import TINY_MODEL, Settings, model_label
 
@@ -103,9 +103,16 @@ def how_to_provide(role_name: str, model: str) -> str:
     elif (folder := local_path(model)) is not None:
         provide = f"put the whole model ({role.marker}) in the folder {folder!r} on the workers"
     else:
-        provide = (f"download it into the workers' Hugging Face cache (HF_HOME) with `hf download {model}` on a "
-                   "machine with internet")
+        provide = (f"download it into the workers' Hugging Face cache (HF_HOME) with `{role_download(role, model)}` "
+                   "on a machine with internet")
     return f"{provide}. {submission_note(role_name)}"
+
+
+def role_download(role: ModelRole | str, model: str) -> str:
+    """The `hf download` of hub id ``model`` fetching only the files that loading a ``role``'s model reads
+    (``download_command``)."""
+    role = ROLES[role] if isinstance(role, str) else role
+    return download_command(model, clip=role.marker == CLIP_LAYOUT)
 
 
 def how_to_repair(role_name: str, model: str) -> str:
@@ -114,8 +121,9 @@ def how_to_repair(role_name: str, model: str) -> str:
     if (folder := local_path(model)) is not None:
         repair = f"replace the folder {folder!r} on the workers with an intact copy"
     else:
-        repair = (f"download it again into the workers' Hugging Face cache (HF_HOME) with `hf download {model} "
-                  "--force-download` on a machine with internet, or delete its folder there and download it")
+        repair = (f"download it again into the workers' Hugging Face cache (HF_HOME) with "
+                  f"`{role_download(role_name, model)} --force-download` on a machine with internet, or delete its "
+                  "folder there and download it")
     return f"{repair}. {submission_note(role_name)}"
 
 

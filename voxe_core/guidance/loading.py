@@ -16,6 +16,8 @@ DIFFUSERS_LAYOUT = "model_index.json, unet/, vae/, text_encoder/, tokenizer/, sc
 DIFFUSERS_FILES = ("model_index.json", "unet/config.json", "vae/config.json", "text_encoder/config.json",
                    "tokenizer/vocab.json", "tokenizer/merges.txt", "scheduler/scheduler_config.json")
 """The small files loading reads of every diffusers-layout Stable Diffusion: each component's config, the vocabulary."""
+WHOLE_FOLDERS = ("tokenizer", "scheduler")
+"""The components loading reads every file of (those of :data:`DIFFUSERS_FILES` and what else they hold)."""
 COMPONENT_CONFIGS = tuple(name for name in DIFFUSERS_FILES if "/" in name and name.endswith("config.json"))
 """The configs each component is built from (checked by :func:`component_config_fault` before loading)."""
 WEIGHTED_COMPONENTS = ("unet", "vae", "text_encoder")
@@ -26,6 +28,8 @@ CLIP_FILES = ("config.json", "preprocessor_config.json")
 CLIP_TOKENIZERS = (("vocab.json", "merges.txt"), ("tokenizer.json",))
 """The files of a CLIP tokenizer, one set of them whole (transformers 5 reads ``tokenizer.json`` alone; 4's
 ``CLIPTokenizer`` needs the first)."""
+CLIP_TOKENIZER_CONFIGS = ("tokenizer_config.json", "special_tokens_map.json")
+"""The tokenizer's settings a CLIP tokenizer reads where they are (its 77-token ``model_max_length`` among them)."""
 CLIP_WEIGHTS = ("model.safetensors", "pytorch_model.bin")
 """The weights files transformers loads a model from, any one of them whole, or its shards an index of that name
 plus ``.index.json`` lists."""
@@ -50,8 +54,10 @@ def not_available_message(model: str, cause: BaseException | None, offline: bool
     offline" and to download it, though the hub had been asked and has no such model. A hub id whose files are all in
     the cache (``cached``) failed on reading them, and is told to fetch them again: a damaged weights file had been
     told to check the model id (or that the model was not available offline). A ``revision`` other than main is in
-    each `hf download` advised (it had fetched main again, and the revision loaded stayed as it was)."""
-    download = f"hf download {model}" + (f" --revision {revision}" if revision not in (None, "main") else "")
+    each `hf download` advised (it had fetched main again, and the revision loaded stayed as it was), which fetches
+    only the files loading reads (:func:`download_command`); `huggingface-cli`, gone from huggingface_hub 1.0 (which
+    transformers 5 needs), is no longer advised."""
+    download = download_command(model, revision=revision)
     if model == TINY_MODEL and local_path(model) is None:
         msg = f"Stable Diffusion weights '{model}' are not available: {tiny_model_note('`voxe build-tiny-model DIR`')}."
     elif cached and local_path(model) is None:
@@ -77,7 +83,7 @@ def not_available_message(model: str, cause: BaseException | None, offline: bool
     else:
         msg = (
             f"Stable Diffusion weights '{model}' are not available offline{no_folder_note(model)}: download them "
-            f"once with `huggingface-cli {download[3:]}` (or `{download}`) on a machine with internet and "
+            f"once with `{download}` on a machine with internet and "
             f"point HF_HOME at that cache, or pass a local folder in the diffusers layout ({DIFFUSERS_LAYOUT})."
         )
     if cause is not None:
@@ -360,7 +366,8 @@ def files_loaded(names: list[str]) -> list[str]:
         ...               "unet/diffusion_pytorch_model.safetensors", "unet/diffusion_pytorch_model.fp16.safetensors"])
         ['unet/config.json', 'unet/diffusion_pytorch_model.safetensors']
     """
-    chosen = [name for name in names if name in DIFFUSERS_FILES or name.startswith(("tokenizer/", "scheduler/"))
+    whole = tuple(f"{folder}/" for folder in WHOLE_FOLDERS)
+    chosen = [name for name in names if name in DIFFUSERS_FILES or name.startswith(whole)
               or name in COMPONENT_CONFIGS]
     for component in WEIGHTED_COMPONENTS:
         inside = [name[len(component) + 1:] for name in names if name.startswith(component + "/")]
@@ -373,6 +380,47 @@ def files_loaded(names: list[str]) -> list[str]:
                 chosen += [f"{component}/{name}" for name in picked]
                 break
     return chosen
+
+
+def download_patterns(clip: bool = False) -> tuple[list[str], list[str]]:
+    """The ``--include`` and ``--exclude`` globs of an `hf download` fetching what loading reads of a diffusers-layout
+    model (``clip``: a CLIP one), from the lists loading checks: a bare
+    `hf download stabilityai/stable-diffusion-2-base` had fetched the whole repository (fp16, Flax and single-file
+    checkpoints: tens of GB). A component's weights are its whole files and shards of either format, never a
+    variant's (``*.fp16.safetensors``); where a repository holds both formats the torch archives come too, which
+    loading (safetensors first) then leaves unread.
+
+    Examples:
+        >>> download_patterns(clip=True)[0][:3]
+        ['config.json', 'preprocessor_config.json', 'vocab.json']
+    """
+    suffixes = (".safetensors", ".bin")
+    exclude = [f"*.*{suffix}" for suffix in suffixes]  # (a variant's name has a dot more: *.fp16.safetensors)
+    if clip:
+        tokenizer = dict.fromkeys(name for files in CLIP_TOKENIZERS for name in files)
+        return [*CLIP_FILES, *tokenizer, *CLIP_TOKENIZER_CONFIGS,
+                *(pattern for weights in CLIP_WEIGHTS for pattern in (
+                    weights, f"{weights}.index.json", weights.replace(".", "-*-of-*.", 1)))], exclude
+    return ([name for name in DIFFUSERS_FILES if name.split("/")[0] not in WHOLE_FOLDERS]
+            + [f"{folder}/*" for folder in WHOLE_FOLDERS]
+            + [f"{component}/*{suffix}{index}" for component in WEIGHTED_COMPONENTS for suffix in suffixes
+               for index in ("", ".index.json")]), exclude
+
+
+def download_command(model: str, clip: bool = False, revision: str | None = None) -> str:
+    """`hf download` of the files of hub id ``model`` (at ``revision``: main when None or "main") that loading reads,
+    :func:`download_patterns`' (``clip``: a CLIP model's), in the `hf` CLI's syntax (one ``--include`` a pattern).
+
+    Examples:
+        >>> download_command("owner/clip", clip=True, revision="v2")[:75]
+        'hf download owner/clip --revision v2 --include config.json --include prepro'
+    """
+    import shlex
+
+    include, exclude = download_patterns(clip)
+    return " ".join([f"hf download {model}" + (f" --revision {revision}" if revision not in (None, "main") else "")]
+                    + [f"--include {shlex.quote(pattern)}" for pattern in include]
+                    + [f"--exclude {shlex.quote(pattern)}" for pattern in exclude])
 
 
 def download_notice(model: str, local_files_only: bool, size_of: Callable[[str], int | None] | None = None,
