@@ -42,10 +42,10 @@ from voxe_core.cli.common import (
 )
 
 COMMAND_GROUPS = (reconstruct, render, mesh, grids, edit, refine, evaluate, service)
-MACHINE_FAILURES = (errno.ENOSPC, errno.EDQUOT, errno.EIO)
-"""The errnos of an OSError that is the machine's failure (a full disk or quota, a failing disk), not the input's:
-such a run exits ``EXIT_FAILED``, not 2 ("bad input"), which had told a script to fix what it passed after a long
-stage ended on a full disk."""
+MACHINE_FAILURES = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EIO)
+"""The errnos of an OSError that is the machine's failure (a full disk or quota, a file size limit: RLIMIT_FSIZE,
+FAT32's 4 GiB; a failing disk), not the input's: such a run exits ``EXIT_FAILED``, not 2 ("bad input"), which had
+told a script to fix what it passed after a long stage ended on a full disk."""
 OUT_OF_MEMORY_SAYINGS = ("can't allocate memory", "Tried to allocate", "out of memory",
                          "Storage size calculation overflowed")
 """How torch's RuntimeErrors say a tensor asked for is past the machine's memory; the last, past what a byte count
@@ -67,7 +67,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of ``voxe``; returns the exit status (0 ok, 1 the work did not succeed: the job waited for, or
-    the machine's disk full or failing, 2 bad input, 3 the job service failed or was
+    the machine's disk full, at a file size limit or failing, 2 bad input, 3 the job service failed or was
     not reached, 130 interrupted, 143 stopped by SIGTERM, 141 its output's reader gone). A command that does not
     succeed leaves no folder it made and wrote nothing into."""
     status = None
