@@ -1901,7 +1901,8 @@ def test_a_png_gif_ply_or_obj_that_the_disk_cannot_hold_is_named_in_the_error(sp
     """A full disk under the PNG, GIF, PLY and OBJ writers (a write or a flush, which name no file) had been said as
     "[Errno 28] No space left on device" alone, no file named; an OBJ's as its .mtl's, had it been named. Here the
     kernel cuts each write at a file size limit (RLIMIT_FSIZE: EFBIG, raised as ENOSPC is, naming no file), in a
-    process of its own: each error names the file being written, and nothing of it is left."""
+    process of its own: each error names the file asked for (render's view, not its staging copy), and nothing of it
+    is left."""
     script = (
         "import json, resource, signal, sys\n"
         "from voxe_core.cli import main\n"
@@ -1920,10 +1921,9 @@ def test_a_png_gif_ply_or_obj_that_the_disk_cannot_hold_is_named_in_the_error(sp
                             text=True, timeout=300)
     assert result.stdout.split() == ["1"] * 4, result.stderr  # the machine's limit, not bad input
     err = result.stderr.splitlines()
-    assert re.fullmatch(rf"voxe render: error: \[Errno 27\] File too large: '{re.escape(str(tmp_path))}/views/"
-                        r"[^']*000\.png'", err[0]), err
-    assert err[1:] == [f"voxe {name}: error: [Errno 27] File too large: '{tmp_path / file}'" for name, file in
-                       (("turntable", "t.gif"), ("export-mesh", "m.ply"), ("export-mesh", "m.obj"))]
+    assert err == [f"voxe {name}: error: [Errno 27] File too large: '{tmp_path / file}'" for name, file in
+                   (("render", "views/000.png"), ("turntable", "t.gif"), ("export-mesh", "m.ply"),
+                    ("export-mesh", "m.obj"))]  # (render's: the view asked for, not its .render-staging copy)
     assert sorted(p.name for p in tmp_path.iterdir()) == [sphere_file.name]
 
 
@@ -1944,6 +1944,23 @@ def test_a_full_disk_under_a_writer_names_its_file(tmp_path, monkeypatch):
     assert (error.value.errno, error.value.filename) == (errno.ENOSPC, str(target))
     assert str(error.value) == f"[Errno 28] No space left on device: '{target}'"
     assert target.read_bytes() == earlier and [p.name for p in tmp_path.iterdir()] == ["view.png"]
+
+
+@pytest.mark.parametrize("command, name", [("evaluate", "ring/initial/000.png"), ("refine", "renders/000.png")])
+def test_a_full_disk_in_a_staging_folder_names_the_file_asked_for(tmp_path, monkeypatch, command, name):
+    """A view that the disk could not hold in a command's staging folder had been named as its hidden copy
+    (``out/.evaluate-staging/ring/initial/000.png``): it is named as the file of --out it stands for."""
+    from voxe_core.cli.common import staging_folder
+    from voxe_core.export import save_png
+
+    def disk_full(fd):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(os, "fsync", disk_full)
+    with pytest.raises(OSError) as error, staging_folder(tmp_path, command) as staging:
+        save_png(staging / name, np.zeros((4, 4, 3), np.uint8))
+    assert str(error.value) == f"[Errno 28] No space left on device: '{tmp_path / name}'"
+    assert list(tmp_path.iterdir()) == []
 
 
 def test_render_metrics_that_cannot_be_written_keep_the_earlier_file(tmp_path, fill_disk, capsys):

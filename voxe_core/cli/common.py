@@ -471,7 +471,9 @@ def staging_folder(out: Path, command: str) -> Iterator[Path]:
     One name a command, so a killed run's (a whole ring of views) goes at the next run's start; held locked while in
     use, so a second run into the same --out is refused rather than emptying the first's; gone on leaving. Marked
     (:data:`STAGING_MARKER`) when made: a folder of that name holding files but no mark is the user's, and is
-    refused rather than emptied (a user's own ``.render-staging`` had been)."""
+    refused rather than emptied (a user's own ``.render-staging`` had been). An OSError naming a file in it names
+    the file of ``out`` it stands for: a full disk had been said of ``views/.render-staging/000.png``, a path the user
+    never asked for, not ``views/000.png``."""
     staging = out / f".{command}-staging"
     staging.mkdir(exist_ok=True)
     held = os.open(staging, os.O_RDONLY)
@@ -491,6 +493,10 @@ def staging_folder(out: Path, command: str) -> Iterator[Path]:
             if leftover != marker:
                 shutil.rmtree(leftover) if leftover.is_dir() and not leftover.is_symlink() else leftover.unlink()
         yield staging
+    except OSError as exc:
+        if isinstance(exc.filename, str) and exc.filename2 is None and Path(exc.filename).is_relative_to(staging):
+            exc.filename = str(out / Path(exc.filename).relative_to(staging))  # (a move's names both: left as is)
+        raise
     finally:
         shutil.rmtree(staging, ignore_errors=True)
         os.close(held)
