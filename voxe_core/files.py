@@ -167,11 +167,12 @@ def replacing(path: str | os.PathLike) -> Iterator[Path]:
     """A temporary path beside ``path`` to write into; when the block ends without an error it replaces ``path``
     in one rename, its bytes flushed to the disk first (:func:`flush_to_disk`), otherwise it is removed and ``path``
     is left as it was. It keeps ``path``'s suffix (writers pick their format by it), is hidden (:func:`partial_path`)
-    from listings of the folder, and is this writer's own (a random token in its name: two writers of one file at once had shared one partial file, each writing over the
-    other's bytes, the first to finish renaming that mix into place and the other failing "No such file"). An OSError
-    about that temporary file (a missing folder, no permission) names ``path``, the file the caller asked for, as
-    does a failure to write bytes that names no file (:func:`naming_write_failures`: a full disk under a PNG, GIF
-    or PLY writer); a block writing two files names the other's itself.
+    from listings of the folder, and is this writer's own (a random token in its name: two writers of one file at
+    once had shared one partial file, each writing over the other's bytes, the first to finish renaming that mix
+    into place and the other failing "No such file"). An OSError about that temporary file (a missing folder, no
+    permission) names ``path``, the file the caller asked for, as does a failure to write bytes that names no file
+    (:func:`naming_write_failures`: a full disk under a PNG, GIF or PLY writer); a block writing two files names the
+    other's itself.
     A file replaced keeps its permissions, and a symlink stays one, its target replaced (the new file had taken the
     umask's mode, a 0600 file becoming readable by all, and the link had become a file of its own).
     The partial file is made here and held locked while the block runs, so that a writer killed mid-write is told
