@@ -2087,11 +2087,46 @@ def test_render_into_an_earlier_output_leaves_only_this_runs_views(sphere_file, 
     assert sorted(p.name for p in out.iterdir()) == ["000.png", "0001.jpg", "001.png", "1080.png", "123_scan.png",
                                                      "cover.png", "metrics.json", "notes.txt", "render.json"]
     assert np.asarray(Image.open(out / "001.png")).shape == (16, 16, 3)
-    for manifest in ({"written_by": "voxe render", "files": ["../views/notes.txt", "/etc/hostname", 3]},
-                     {"files": ["notes.txt", "cover.png"]}, ["001.png"]):  # other folders' files; the user's own
+    (out / "render.json").write_text(json.dumps({"written_by": "voxe render",  # other folders' files
+                                                 "files": ["000.png", "../views/notes.txt", "/etc/hostname", 3]}))
+    assert main(ring + ["1"]) == 0  # removes nothing of theirs
+    assert (out / "notes.txt").exists() and (out / "cover.png").exists() and (out / "001.png").exists()
+
+
+def test_render_refuses_to_write_over_files_no_earlier_run_wrote(sphere_file, tmp_path, capsys):
+    """A user's own render.json, metrics.json or view-named file in --out had been overwritten by the run (the
+    help says files no run listed stay): the run is refused before rendering, naming the file, which stays."""
+    out = tmp_path / "views"
+    ring = ["render", str(sphere_file), "--size", "16", "--out", str(out), "--quiet", "--ring", "2"]
+    out.mkdir()
+    for manifest in ({"files": ["notes.txt"]}, ["001.png"], "my render settings"):  # the user's own render.json
         (out / "render.json").write_text(json.dumps(manifest))
-        assert main(ring + ["1"]) == 0  # removes nothing
-        assert (out / "notes.txt").exists() and (out / "cover.png").exists() and (out / "001.png").exists()
+        assert main(ring) == 2
+        assert (f"--out: {out / 'render.json'} is not a manifest voxe render wrote" in capsys.readouterr().err)
+        assert json.loads((out / "render.json").read_text()) == manifest and sorted(os.listdir(out)) == ["render.json"]
+    (out / "render.json").unlink()
+    (out / "001.png").write_text("mine")
+    assert main(ring) == 2
+    assert f"--out: {out / '001.png'} was not written by an earlier voxe render" in capsys.readouterr().err
+    assert (out / "001.png").read_text() == "mine" and sorted(os.listdir(out)) == ["001.png"]
+    (out / "001.png").unlink()
+    assert main(ring) == 0  # its own files it writes over at the next run
+    assert main(ring) == 0 and sorted(os.listdir(out)) == ["000.png", "001.png", "render.json"]
+
+
+@needs_mic
+def test_render_refuses_to_write_over_a_users_metrics_json(sphere_file, tmp_path, capsys):
+    """--data's metrics.json over a user's own one (a ring run's folder, which lists none) is refused."""
+    out = tmp_path / "views"
+    assert main(["render", str(sphere_file), "--ring", "1", "--size", "16", "--out", str(out), "--quiet"]) == 0
+    (out / "metrics.json").write_text("mine")
+    data = ["render", str(sphere_file), "--data", str(MIC), "--split", "test", "--downsample", "16",
+            "--max-images", "1", "--out", str(out), "--quiet"]
+    assert main(data) == 2
+    assert f"--out: {out / 'metrics.json'} was not written by an earlier voxe render" in capsys.readouterr().err
+    assert (out / "metrics.json").read_text() == "mine"
+    (out / "metrics.json").unlink()
+    assert main(data) == 0 and main(data) == 0  # its own metrics.json, replaced
 
 
 @pytest.mark.parametrize("source", ["ring", pytest.param("data", marks=needs_mic)])

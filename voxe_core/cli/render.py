@@ -39,7 +39,8 @@ def add_parsers(commands, common) -> None:
     add_centre_argument(ren)
     ren.add_argument("--out", type=Path, required=True, metavar="DIR",
                      help=f"folder of the views (and metrics.json with --data); the files an earlier voxe render "
-                          f"listed in its {MANIFEST_FILE} there are replaced, others stay")
+                          f"listed in its {MANIFEST_FILE} there are replaced, others stay (a run that would write over "
+                          f"one is refused)")
     add_device_argument(ren)
     ren.set_defaults(run=cmd_render)
 
@@ -116,6 +117,7 @@ def cmd_render(args) -> int:
     outputs = names + ([METRICS_FILE] if scene is not None else [])
     for name in outputs:  # (a folder in the way had failed the move, after the whole render)
         writable_file(args.out / name)
+    _refuse_files_not_its_own(args.out, outputs)
     # Each view saved as it is rendered (all had been held first)
     with staging_folder(args.out, "render") as staging:
         scores = run_stage(lambda cb: _render_into(staging, grid, cameras, names, scene, cb, device), "render",
@@ -153,17 +155,37 @@ def _render_into(folder: Path, grid, cameras, names: list[str], scene, callbacks
     return (torch.cat(psnr_values) if scored else None), (torch.cat(ssim_values) if with_ssim else None)
 
 
+def _earlier_files(out_dir: Path) -> list | None:
+    """The files an earlier run listed in ``out_dir``'s manifest; None where there is none of this command's (no
+    file, or a file of the user's own by that name)."""
+    try:
+        listed = json.loads((out_dir / MANIFEST_FILE).read_text(encoding="utf-8"))
+        return list(listed["files"]) if listed.get("written_by") == "voxe render" else None
+    except (OSError, ValueError, KeyError, TypeError, AttributeError):
+        return None
+
+
+def _refuse_files_not_its_own(out_dir: Path, files: list[str]) -> None:
+    """ValueError naming a file this run would write over that no earlier run wrote (a user's own render.json,
+    metrics.json or 000.png in --out), before rendering: they had been overwritten, where --out's help says files
+    no run listed stay."""
+    earlier = _earlier_files(out_dir)
+    if earlier is None and os.path.lexists(out_dir / MANIFEST_FILE):
+        raise ValueError(f"--out: {out_dir / MANIFEST_FILE} is not a manifest voxe render wrote, and a run writes "
+                         "its own there; move that file or choose another --out")
+    for name in files:
+        if os.path.lexists(out_dir / name) and name not in (earlier or []):
+            raise ValueError(f"--out: {out_dir / name} was not written by an earlier voxe render (its "
+                             f"{MANIFEST_FILE} does not list it), and this run would write over it; move that file "
+                             "or choose another --out")
+
+
 def _replace_manifest(out_dir: Path, files: list[str]) -> None:
     """Remove the files an earlier run listed in ``out_dir``'s manifest, then list ``files``, this run's (before it
     writes them, so an interrupted run's are listed too). A re-run writing fewer views had left the earlier run's
     beside them; files no run listed (the user's own, whatever their names) stay."""
     manifest = out_dir / MANIFEST_FILE
-    try:
-        listed = json.loads(manifest.read_text(encoding="utf-8"))
-        earlier = listed["files"] if listed.get("written_by") == "voxe render" else []  # (a file of the user's own)
-    except (OSError, ValueError, KeyError, TypeError, AttributeError):  # none, or not this command's: none removed
-        earlier = []
-    for name in earlier:
+    for name in _earlier_files(out_dir) or []:  # none, or not this command's: none removed
         if isinstance(name, str) and Path(name).name == name and (out_dir / name).is_file():  # (only its own names)
             (out_dir / name).unlink()
     with replacing(manifest) as partial:
