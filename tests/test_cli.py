@@ -2663,6 +2663,38 @@ def test_a_fresh_edit_that_fails_or_is_cancelled_leaves_no_earlier_runs_result(s
     assert (out / "edited.safetensors").is_file()
 
 
+def test_a_fresh_edit_failing_before_its_first_checkpoint_leaves_no_earlier_runs_checkpoint(
+        sphere_grid, tmp_path, monkeypatch, capsys):
+    """A fresh edit (no --resume) failing or cancelled before its first checkpoint had left an earlier run's
+    checkpoint.safetensors in --out, and the cancel hint named it to resume ("resume with --resume
+    D/checkpoint.safetensors"), another run's edit. A fresh run removes it first, as it does the earlier result."""
+    import voxe_core.cli.edit as edit_command
+    import voxe_core.edit
+    from voxe_core.progress import StageCancelled
+
+    monkeypatch.setattr(edit_command, "load_guidance", stand_in_guidance())
+    sphere_grid.save(tmp_path / "g.safetensors")
+    out = tmp_path / "out"
+    edit = ["edit", str(tmp_path / "g.safetensors"), "--prompt", "a dog", "--out", str(out), "--device", "cpu", "-q",
+            "--iterations", "2", "--preview-every", "1"]
+
+    def cancelled(*args, **kwargs):
+        raise StageCancelled("edit")
+
+    def failing(*args, **kwargs):
+        raise RuntimeError("CUDA out of memory")
+
+    for stand_in, code, said in ((cancelled, 130, "voxe: edit cancelled before its first step"),
+                                 (failing, 2, "CUDA out of memory")):
+        monkeypatch.setattr(voxe_core.edit, "edit", previewing_edit)
+        assert main(edit) == 0 and (out / "checkpoint.safetensors").is_file()  # the earlier run, whole
+        capsys.readouterr()
+        monkeypatch.setattr(voxe_core.edit, "edit", stand_in)
+        assert main(edit) == code
+        assert said in capsys.readouterr().err
+        assert not (out / "checkpoint.safetensors").exists()
+
+
 @pytest.mark.parametrize("change, message", [
     ({"--prompt": "a cat"}, "checkpoint was made for the prompt 'a dog', not 'a cat'"),
     ({"grid": 20}, "checkpoint grid is (32, 32, 32), the initial grid (20, 20, 20)"),

@@ -30,8 +30,8 @@ def add_parsers(commands, common) -> None:
     ed.add_argument("--prompt", required=True, help='edit text, e.g. "a dog wearing big sunglasses"')
     ed.add_argument("--out", type=Path, required=True, metavar="DIR",
                     help="writes DIR/edited.safetensors (when the edit ends), DIR/checkpoint.safetensors, "
-                         "DIR/previews/*.png (an earlier run's result and previews there removed first, unless "
-                         "--resume continues it)")
+                         "DIR/previews/*.png (an earlier run's result, checkpoint and previews there removed first, "
+                         "unless --resume continues it)")
     add_grid_output_arguments(ed)
     add_model_arguments(ed, "--model", "diffusers-layout Stable Diffusion", paper.SDS_MODEL_ID)
     ed.add_argument("--no-cuda-graphs", dest="cuda_graphs", action="store_false",
@@ -131,11 +131,11 @@ def cmd_edit(args) -> int:
     checkpoint = args.out / "checkpoint.safetensors"
     if args.resume is None:  # a fresh edit: an earlier run's previews (other iterations, another prompt) had stayed
         remove_earlier_outputs(args.out / "previews", PREVIEW_NAME)  # beside its own; a resumed one keeps its own
-        # and its result, which a run failing or cancelled had left beside this one's checkpoint as if this run's (the
-        # grid being edited stays: a user's input)
-        result = args.out / "edited.safetensors"
-        if result.is_file() and not result.samefile(args.grid):
-            result.unlink()
+        # and its result and checkpoint, which a run failing or cancelled had left beside this one's as if this run's
+        # (the cancel hint naming that checkpoint to resume); the grid being edited stays: a user's input
+        for earlier in (args.out / "edited.safetensors", checkpoint):
+            if earlier.is_file() and not earlier.samefile(args.grid):
+                earlier.unlink()
 
     def on_preview(iteration: int, image) -> None:
         save_png(args.out / "previews" / f"preview_{iteration:05d}.png", image)
