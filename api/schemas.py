@@ -97,7 +97,7 @@ class ReconstructionParams(Strict):
         "scene: 48→96 (the CPU budget of a scene-backbone fit); none: scene for a scene-backbone fit, fast otherwise"
     )
     resolution: int | None = Field(
-        None, ge=4, le=paper.MAX_GRID_RESOLUTION,
+        None, ge=paper.MIN_GRID_RESOLUTION, le=paper.MAX_GRID_RESOLUTION,
         description="final grid resolution; earlier stages are scaled in proportion"
     )
     iterations: Annotated[list[StageIterations], Field(min_length=1, max_length=8)] | StageIterations | None = Field(

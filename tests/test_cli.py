@@ -1390,18 +1390,38 @@ def test_a_resolution_past_the_services_bound_is_refused_before_it_runs_out_of_m
         params(**{setting: limit + 1})
 
 
+@pytest.mark.parametrize("command", [["reconstruct", "no_such_data"], ["mesh-to-grid", "m.obj"],
+                                     ["mesh-to-grid", "m.obj", "--route", "render"]])
+def test_a_final_resolution_below_the_services_bound_is_refused_naming_the_option(command, capsys):
+    """``voxe reconstruct --resolution 2`` (or 3; mesh-to-grid's on either route) had been taken where a job's
+    reconstruction.resolution is refused below 4: one bound (constants.MIN_GRID_RESOLUTION) for both, the CLI's
+    said by the option's name; a per-stage list's earlier stages may start coarser, as the service's scaled ones do."""
+    from api.schemas import ReconstructionParams
+    from pydantic import ValidationError
+
+    for value, said in (("3", "must be at least 4"), ("2", "must be at least 4"),
+                        ("2,2,3", "its last value (the final stage's) must be at least 4")):
+        with pytest.raises(SystemExit) as exc:
+            main([*command, "--resolution", value])
+        assert exc.value.code == 2
+        assert f"argument --resolution: {said} (the service's limit), got {value[-1]}" in capsys.readouterr().err
+    assert _option_type(command[0], "--resolution")("4") == [4]
+    assert _option_type(command[0], "--resolution")("2,2,4") == [2, 2, 4]
+    assert ReconstructionParams(resolution=4).resolution == 4
+    with pytest.raises(ValidationError, match="greater than or equal to 4"):
+        ReconstructionParams(resolution=3)
+
+
 def test_a_resolution_below_two_is_refused_naming_the_option_typed(sphere_file, tmp_path, capsys):
     """It had been refused as the setting it fills: "grid resolutions must be at least 2, got [2, 2, 0]" (reconstruct,
     mesh-to-grid --route render), "grid resolution must be >= 2 per axis" (the voxelize route), "mesh resolution must
     be at least 2, got 1" (export-mesh): no option typed is called that."""
     trimesh.creation.icosphere(subdivisions=1, radius=0.5).export(tmp_path / "m.obj")
     grid = tmp_path / "g.safetensors"
-    for command, said in ((["reconstruct", str(tmp_path / "no_such_data"), "--out", str(grid), "--resolution", "2,2,0"],
-                           "--resolution must be at least 2, got [2, 2, 0]"),
+    for command, said in ((["reconstruct", str(tmp_path / "no_such_data"), "--out", str(grid), "--resolution", "0,2,4"],
+                           "--resolution must be at least 2, got [0, 2, 4]"),
                           (["mesh-to-grid", str(tmp_path / "m.obj"), "--route", "render", "--out", str(grid),
-                            "--resolution", "2,2,0"], "--resolution must be at least 2, got [2, 2, 0]"),
-                          (["mesh-to-grid", str(tmp_path / "m.obj"), "--out", str(grid), "--resolution", "1"],
-                           "--resolution must be >= 2 per axis, got (1, 1, 1)"),
+                            "--resolution", "2,0,4"], "--resolution must be at least 2, got [2, 0, 4]"),
                           (["export-mesh", str(sphere_file), "--out", str(tmp_path / "m.ply"), "--resolution", "1"],
                            "--resolution must be at least 2, got 1")):
         assert main(command) == 2

@@ -121,6 +121,11 @@ MAX_GRID_RESOLUTION = 512
 """The finest grid a reconstruction's final stage, or a mesh's voxelization, may be (the service's bound, and the
 CLI's ``--resolution``): ``voxe reconstruct --resolution 5000`` had been taken, its grid past the machine's memory."""
 
+MIN_GRID_RESOLUTION = 4
+"""The coarsest final grid a reconstruction, or a mesh's voxelization, may be (the service's bound, and the CLI's
+``--resolution``, whose per-stage list may start coarser, to 2, as the service's scaled stages do): the CLI had taken
+a final 2 or 3 that a job's reconstruction.resolution refuses."""
+
 MAX_MESH_RESOLUTION = 1024
 """The most lattice points per axis an exported mesh is resampled to (the service's ``mesh_resolution`` bound, and
 ``voxe export-mesh --resolution``'s)."""

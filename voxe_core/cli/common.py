@@ -302,13 +302,18 @@ def positive_int_at_most(limit: int) -> Callable[[str], int]:
     return whole_number
 
 
-def int_list_at_most(limit: int) -> Callable[[str], list[int]]:
-    """The option type of an ``int_list`` whose values are each at most ``limit``, the service's bound for the same
-    parameter (as :func:`positive_int_at_most`): ``voxe reconstruct --resolution 5000`` had been taken."""
+def int_list_at_most(limit: int, last_at_least: int = 0) -> Callable[[str], list[int]]:
+    """The option type of an ``int_list`` whose values are each at most ``limit``, and whose last (a final stage's) is
+    at least ``last_at_least``, the service's bounds for the same parameter (as :func:`positive_int_at_most`):
+    ``voxe reconstruct --resolution 5000`` had been taken, and ``--resolution 2``, which a job refuses."""
     def integers(text: str) -> list[int]:
         values = int_list(text)
         if max(values) > limit:
             raise argparse.ArgumentTypeError(f"must be at most {limit} (the service's limit), got {max(values)}")
+        if values[-1] < last_at_least:
+            said = "must be" if len(values) == 1 else "its last value (the final stage's) must be"
+            raise argparse.ArgumentTypeError(f"{said} at least {last_at_least} (the service's limit), got "
+                                             f"{values[-1]}")
         return values
     return integers
 

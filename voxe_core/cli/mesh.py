@@ -11,7 +11,9 @@ from voxe_core.cli.common import (
     int_list_at_most, positive_int, positive_int_at_most, run_stage, said_by_option, seed, tensor_file, writable_file,
 )
 from voxe_core.cli.reconstruct import RESOLUTION_SETTINGS, recipe_params
-from voxe_core.constants import MAX_GRID_RESOLUTION, MAX_MESH_RESOLUTION, MAX_RAYS_PER_STEP, MESH_SUFFIXES
+from voxe_core.constants import (
+    MAX_GRID_RESOLUTION, MAX_MESH_RESOLUTION, MAX_RAYS_PER_STEP, MESH_SUFFIXES, MIN_GRID_RESOLUTION,
+)
 from voxe_core.presets import (
     DOWNSAMPLE, MESH_VIEW_SIZE, MESH_VIEWS, RECONSTRUCTION_PRESET, RECONSTRUCTION_PRESETS, SEED, ExportConfig,
     reconstruct_config,
@@ -50,9 +52,10 @@ def add_parsers(commands, common) -> None:
                          f"service's fit sees, its {MESH_VIEW_SIZE} px views loaded at 1/{DOWNSAMPLE})")
     mg.add_argument("--preset", choices=RECONSTRUCTION_PRESETS, default=RECONSTRUCTION_PRESET,
                     help="render route: reconstruction preset")
-    mg.add_argument("--resolution", type=int_list_at_most(MAX_GRID_RESOLUTION), default=None, metavar="N[,N...]",
-                    help="grid resolution (voxelize: default the preset's final one, as the service's; render: as "
-                         f"voxe reconstruct; at most {MAX_GRID_RESOLUTION})")
+    mg.add_argument("--resolution", type=int_list_at_most(MAX_GRID_RESOLUTION, MIN_GRID_RESOLUTION), default=None,
+                    metavar="N[,N...]", help="grid resolution (voxelize: default the preset's final one, as the "
+                    f"service's; render: as voxe reconstruct; the final at least {MIN_GRID_RESOLUTION}, at most "
+                    f"{MAX_GRID_RESOLUTION})")
     mg.add_argument("--iterations", type=int_list, default=None, metavar="N[,N...]", help="render route: as voxe reconstruct")
     mg.add_argument("--rays", type=positive_int_at_most(MAX_RAYS_PER_STEP), default=None,
                     help=f"render route: rays per step (at most {MAX_RAYS_PER_STEP})")

@@ -11,7 +11,7 @@ from voxe_core.cli.common import (
     int_list_at_most, load_views, one_or_list, positive_int, positive_int_at_most, run_stage, said_by_option, seed,
     tensor_file, view_params, writable_file,
 )
-from voxe_core.constants import MAX_GRID_RESOLUTION, MAX_RAYS_PER_STEP
+from voxe_core.constants import MAX_GRID_RESOLUTION, MAX_RAYS_PER_STEP, MIN_GRID_RESOLUTION
 from voxe_core.presets import (
     BACKBONE,
     BACKBONE_CHOICES,
@@ -51,9 +51,9 @@ def add_recipe_arguments(parser: argparse.ArgumentParser) -> None:
                         help="fast: the CPU budget (40→80→128); paper: the authors' 20→40→80→160 × 500; scene: "
                              "the CPU budget of a scene-backbone fit (48→96); default: scene for a scene-backbone "
                              f"fit, {RECONSTRUCTION_PRESET} otherwise")
-    parser.add_argument("--resolution", type=int_list_at_most(MAX_GRID_RESOLUTION), default=None, metavar="N[,N...]",
-                        help="final grid resolution (earlier stages scaled in proportion), or one per stage (at most "
-                             f"{MAX_GRID_RESOLUTION})")
+    parser.add_argument("--resolution", type=int_list_at_most(MAX_GRID_RESOLUTION, MIN_GRID_RESOLUTION), default=None,
+                        metavar="N[,N...]", help="final grid resolution (earlier stages scaled in proportion), or one "
+                        f"per stage (the final at least {MIN_GRID_RESOLUTION}; at most {MAX_GRID_RESOLUTION})")
     parser.add_argument("--iterations", type=int_list, default=None, metavar="N[,N...]",
                         help="iterations of the final stage, or one per stage")
     parser.add_argument("--rays", type=positive_int_at_most(MAX_RAYS_PER_STEP), default=None,
