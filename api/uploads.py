@@ -181,7 +181,7 @@ class _Budget:
         most = _ENTRIES_PER_FILE * self.max_files + _ENTRIES_SLACK
         start, size = _directory_extent(source, archive)
         if size > most * _DIRECTORY_BYTES_PER_ENTRY:
-            raise UploadError(f"the archive's directory takes {size} bytes, more than {_DIRECTORY_BYTES_PER_ENTRY} "
+            raise UploadError(f"the directory of {archive} takes {size} bytes, more than {_DIRECTORY_BYTES_PER_ENTRY} "
                               f"per entry for the {most} entries VOXE_MAX_UPLOAD_FILES={self.max_files} allows", 413)
         position = entries = 0
         while position < size:
@@ -194,7 +194,7 @@ class _Budget:
             position += _CENTRAL_RECORD.size + name + extra + comment
             entries += 1
             if entries > most:
-                raise UploadError(f"too many files: the archive's directory lists more than {most} entries "
+                raise UploadError(f"too many files: the directory of {archive} lists more than {most} entries "
                                   f"({_ENTRIES_PER_FILE} per file of VOXE_MAX_UPLOAD_FILES={self.max_files}: files, "
                                   "folders and macOS's __MACOSX copies)", 413)
 
@@ -204,16 +204,17 @@ class _Budget:
             raise UploadError(f"upload too large: more than {self.max_bytes} bytes of content "
                               "(VOXE_MAX_EXTRACTED_BYTES)", 413)
 
-    def check_ratio(self, name: str, written: int, compressed: int) -> None:
+    def check_ratio(self, name: str, written: int, compressed: int, archive: str = "archive") -> None:
         """The entry's ratio (``written`` from ``compressed``), and the archive's over every entry so far: many
-        entries each under the floor had written 256 MiB from a 267 kB upload."""
+        entries each under the floor had written 256 MiB from a 267 kB upload. ``archive`` names the zip
+        (:func:`_archive_named`)."""
         if written > _RATIO_FLOOR and written > self.max_ratio * max(compressed, 1):
             raise UploadError(f"refused entry {listed([name], width=ID_SHOWN)}: it inflates more than "
                               f"{self.max_ratio:g} times the {compressed} compressed bytes read so far (a zip bomb?; "
                               "VOXE_MAX_COMPRESSION_RATIO)", 413)
         read = self.compressed + compressed
         if self.bytes > _RATIO_FLOOR and self.bytes > self.max_ratio * max(read, 1):
-            raise UploadError(f"refused archive: its entries inflate more than {self.max_ratio:g} times the {read} "
+            raise UploadError(f"refused {archive}: its entries inflate more than {self.max_ratio:g} times the {read} "
                               "compressed bytes read so far (a zip bomb?; VOXE_MAX_COMPRESSION_RATIO)", 413)
 
 
@@ -238,9 +239,9 @@ class _CountingReader:
         return True
 
 
-def _copy(src: BinaryIO, dest: Path, budget: _Budget, consumed=None, name: str = "") -> None:
+def _copy(src: BinaryIO, dest: Path, budget: _Budget, consumed=None, name: str = "", archive: str = "archive") -> None:
     """Stream ``src`` into a new file, charging the budget; ``consumed()`` (compressed bytes read so far)
-    bounds the inflation ratio."""
+    bounds the inflation ratio (of entry ``name`` in the zip ``archive`` names)."""
     dest.parent.mkdir(parents=True, exist_ok=True)
     written = 0
     with open(dest, "xb") as out:
@@ -248,7 +249,7 @@ def _copy(src: BinaryIO, dest: Path, budget: _Budget, consumed=None, name: str =
             budget.add_bytes(len(chunk))
             written += len(chunk)
             if consumed is not None:
-                budget.check_ratio(name, written, consumed())
+                budget.check_ratio(name, written, consumed(), archive)
             out.write(chunk)
 
 
@@ -313,9 +314,9 @@ def _is_folder(info: zipfile.ZipInfo) -> bool:
 
 
 def extract_zip(source: BinaryIO, dest: Path, budget: _Budget, name: str | None = None) -> None:
-    """Check every entry's name and type first, then stream the entries out under the budget. A zip that is none is
-    refused naming its file ``name`` (as sent), as a file sent loose is named: the 422 had said only "archive is not
-    a readable zip file"."""
+    """Check every entry's name and type first, then stream the entries out under the budget. A zip that is none, or
+    one past a limit, is refused naming its file ``name`` (as sent), as a file sent loose is named: the 422 had said
+    only "archive is not a readable zip file", the 413s "the archive's directory" or "refused archive"."""
     label = _archive_named(name)
     budget.check_directory(source, label)
     reader = _CountingReader(source)
@@ -344,7 +345,7 @@ def extract_zip(source: BinaryIO, dest: Path, budget: _Budget, name: str | None 
             try:
                 start = reader.consumed
                 with archive.open(info) as member:
-                    _copy(member, dest / path, budget, lambda: reader.consumed - start, info.filename)
+                    _copy(member, dest / path, budget, lambda: reader.consumed - start, info.filename, label)
                 budget.compressed += reader.consumed - start
             except UploadError:
                 raise

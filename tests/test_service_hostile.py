@@ -469,7 +469,7 @@ def test_a_directory_over_the_file_cap_is_413_before_zipfile_reads_it(tmp_path, 
     cases = {  # (archive, VOXE_MAX_UPLOAD_FILES, message)
         "honest count": (_directory_only(20_000, 20_000, zip64), 500, "lists more than 2008 entries"),
         "lying count": (_directory_only(20_000, 1, zip64), 500, "lists more than 2008 entries"),
-        "long records": (_directory_only(1, 1, zip64, comment=bytes(30_000)), 5, "directory takes 30047 bytes"),
+        "long records": (_directory_only(1, 1, zip64, comment=bytes(30_000)), 5, "directory of archive takes 30047 bytes"),
     }
 
     def unread(*args, **kwargs):
@@ -486,6 +486,26 @@ def test_a_directory_over_the_file_cap_is_413_before_zipfile_reads_it(tmp_path, 
             tracemalloc.stop()
         assert refused.value.status == 413 and f"VOXE_MAX_UPLOAD_FILES={max_files}" in str(refused.value), case
         assert peak < 64 << 10, (case, peak)  # a 940 kB directory is never held
+
+
+def test_the_413s_of_a_zip_name_the_file_sent(tmp_path):
+    """A zip past a limit is named by its file name as sent, as the 422 of one that is none is: the 413s had said
+    "the archive's directory takes ...", "... the archive's directory lists more than ..." and "refused archive: its
+    entries inflate ...", whichever file of several a user had picked."""
+    from api.uploads import UploadError, _Budget, extract_zip
+
+    cases = {  # (archive, VOXE_MAX_UPLOAD_FILES, message's start)
+        "long records": (_directory_only(1, 1, False, comment=bytes(30_000)), 5,
+                         "the directory of archive 'big.zip' takes 30047 bytes"),
+        "many records": (_directory_only(40, 40, False), 5,
+                         "too many files: the directory of archive 'big.zip' lists more than 28 entries"),
+        "bomb": (_zip({f"f{i}.bin": bytes(3 << 20) for i in range(4)}, zipfile.ZIP_DEFLATED), 100,
+                 "refused archive 'big.zip': its entries inflate more than 200 times the"),
+    }
+    for case, (archive, max_files, message) in cases.items():
+        with pytest.raises(UploadError) as refused:
+            extract_zip(io.BytesIO(archive), tmp_path / case, _Budget(1 << 30, max_files, 200.0), "big.zip")
+        assert refused.value.status == 413 and str(refused.value).startswith(message), (case, str(refused.value))
 
 
 @pytest.mark.parametrize("zip64", [False, True])
