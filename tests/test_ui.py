@@ -684,6 +684,51 @@ def test_an_upload_s_error_stays_shown_while_an_earlier_upload_s_scene_is_watche
         assert client.delete(f"/v1/scenes/{first}").status_code == 204  # the other tests expect their own only
 
 
+def test_a_second_upload_s_status_is_not_written_over_by_the_first_s_outcome(live, browser, tmp_path):
+    """Each upload's scene is watched until processed: a second upload sent while the first's scene was processing
+    had its status ("stored as B; processing…") written over by the first's outcome ("scene A (A): ready"), and the
+    first's warnings listed under it. The form reports the last upload sent only."""
+    svc, token, _archive = live
+    driver = browser
+    status = lambda: text(driver, "#upload-status")  # noqa: E731
+    set_key(driver, svc, token)
+    processing = json.dumps({"id": "x", "name": "tetra", "state": "processing"})
+    faults(driver, {"/v1/scenes/": {"method": "GET", "status": 200, "type": "application/json", "body": processing}})
+    made = []
+    try:
+        for name in ("first", "second"):
+            (tmp_path / name).mkdir()
+            driver.find_element("id", "upload-files").clear()
+            driver.find_element("id", "upload-files").send_keys(str(tetrahedron(tmp_path / name)))
+            driver.find_element("id", "upload-name").clear()
+            driver.find_element("id", "upload-name").send_keys(name)
+            driver.find_element("css selector", "#upload-form button").click()
+            wait_until(lambda: (found := re.search(r"stored as (\S+);", status())) and found[1] not in made, 30,
+                       what=f"the {name} upload stored")
+            made.append(re.search(r"stored as (\S+);", status())[1])
+        first, second = made
+        ready = json.dumps({"id": first, "name": "first", "state": "ready", "warnings": ["a warning of the first"]})
+        polls = len(requested(driver, f"/v1/scenes/{first}"))
+        faults(driver, {f"/v1/scenes/{first}": {"method": "GET", "status": 200, "type": "application/json",
+                                                "body": ready},
+                        f"/v1/scenes/{second}": {"method": "GET", "status": 200, "type": "application/json",
+                                                 "body": processing}})  # (keys matched in sorted order: no prefix)
+        wait_until(lambda: len(requested(driver, f"/v1/scenes/{first}")) > polls, 10, what="the first told ready")
+        polls = len(requested(driver, f"/v1/scenes/{second}"))
+        wait_until(lambda: len(requested(driver, f"/v1/scenes/{second}")) >= polls + 2, 10, what="two more polls")
+        assert status() == f"stored as {second}; processing…", status()
+        assert not driver.find_elements("css selector", "#upload-warnings li")
+    finally:
+        faults(driver, {})
+    wait_until(lambda: status() == f"scene second ({second}): ready", 120, what="the second scene ready",
+               processes=svc.processes)
+    with httpx.Client(base_url=svc.base, headers={"Authorization": f"Bearer {token}"}) as client:
+        wait_until(lambda: client.get(f"/v1/scenes/{first}").json()["state"] != "processing", 120,
+                   what="the first scene processed", processes=svc.processes)
+        for scene_id in made:  # the other tests expect their own only
+            assert client.delete(f"/v1/scenes/{scene_id}").status_code == 204
+
+
 def test_an_upload_answered_with_no_scene_says_so(live, browser, tmp_path):
     """An upload answered 200 with no scene (a proxy's login page it was redirected to) is said beside the upload: its
     answer had been parsed unguarded, an unhandled rejection left the form at "100 % sent". Sent again, it keeps its

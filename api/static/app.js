@@ -271,6 +271,7 @@ function initUpload() {
     bar.hidden = false;
     bar.value = 0;
     status.textContent = "";  // (the last upload's outcome)
+    reported = null;  // (an earlier upload's scene, still watched, no longer reports here)
     showSceneWarnings([]);
     button.disabled = true;  // until the upload is answered: a second click would upload it twice
     const xhr = new XMLHttpRequest();
@@ -313,7 +314,7 @@ function initUpload() {
       idempotency.succeeded();
       bar.value = 1;
       status.textContent = `stored as ${body.id}; ${body.state}…`;
-      ingesting = body.id;
+      ingesting = reported = body.id;
       // Watched on the page shown when the upload is answered (and again on a later home page: ingesting): the
       // page it was sent from is gone after a look at a job meanwhile, and the home page shown since had found
       // nothing to watch when it opened, leaving the scene "processing…" and never offered.
@@ -326,6 +327,10 @@ function initUpload() {
 /** The uploaded scene whose ingest the upload form reports, until the ingest ends: watched again whenever the home
  * page shows (a look at a job meanwhile had left it "processing…" for good, and the scene never offered). */
 let ingesting = null;
+
+/** The scene of the last upload sent, the one the upload form's status, warnings and error report: an earlier
+ * upload's scene still watched once it is sent had its outcome ("scene A: ready") written over the later one's. */
+let reported = null;
 
 /** Poll a new scene until its ingest is done, while the page is shown; a failed ingest's reason goes beside the
  * upload field. A failed poll is shown there too and retried, less often each time, until the page changes. */
@@ -340,9 +345,11 @@ async function waitForScene(sceneId, status, signal) {
       failures = 0;
       if (scene.state !== "processing") {
         if (ingesting === sceneId) ingesting = null;
-        status.textContent = `scene ${scene.name} (${scene.id}): ${scene.state}`;
-        showSceneWarnings(scene.warnings);
-        if (scene.state === "failed") showError("upload", scene.error || "the scene could not be decoded");
+        if (reported === sceneId) {
+          status.textContent = `scene ${scene.name} (${scene.id}): ${scene.state}`;
+          showSceneWarnings(scene.warnings);
+          if (scene.state === "failed") showError("upload", scene.error || "the scene could not be decoded");
+        }
         await loadScenes(signal, scene.state === "ready" ? scene.id : undefined);
         return;
       }
