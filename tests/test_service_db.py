@@ -994,6 +994,33 @@ def test_racing_first_reads_of_a_keys_webhook_secret_all_get_the_stored_one(db):
     assert secrets == [stored] * RACERS, secrets
 
 
+def test_racing_rotations_of_a_keys_webhook_secret_all_answer_the_one_kept(db):
+    """Rotations at once (two POST /v1/webhooks/secret/rotate, or one beside the admin's rotate-webhook-secret) each
+    answered the secret it wrote, the last writer's kept: the others' callers held a secret that never signed
+    anything. One writes its secret, every one answers it, and it is not the one they all replaced."""
+    from api.services.jobs import rotate_webhook_secret
+    from voxe_service.db import get_sessionmaker
+    from voxe_service.models import LOCAL_KEY_ID, ApiKey
+    from voxe_service.webhooks import key_secret
+
+    with get_sessionmaker()() as session:
+        old = key_secret(session, session.get(ApiKey, LOCAL_KEY_ID))
+        session.commit()
+    all_read = threading.Barrier(RACERS)
+
+    def rotate(_):
+        with get_sessionmaker()() as session:
+            key = session.get(ApiKey, LOCAL_KEY_ID)
+            assert key.webhook_secret == old
+            all_read.wait(60)  # (a racer that failed before it: the others go on, their error told, not hung)
+            return rotate_webhook_secret(session=session, key=key)
+
+    secrets = race(rotate)
+    with get_sessionmaker()() as session:
+        stored = session.get(ApiKey, LOCAL_KEY_ID).webhook_secret
+    assert stored != old and secrets == [stored] * RACERS, secrets
+
+
 def test_a_process_holds_at_most_its_configured_connections_then_waits_its_timeout(tmp_path, monkeypatch,
                                                                                      database_url):
     """VOXE_DATABASE_POOL_SIZE + VOXE_DATABASE_MAX_OVERFLOW bound one process's connections (the deployment's sum

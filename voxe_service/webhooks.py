@@ -442,10 +442,19 @@ def key_secret(session: Session, key: ApiKey) -> str:
     return key.webhook_secret
 
 
-def rotate_secret(key: ApiKey) -> str:
+def rotate_secret(session: Session, key: ApiKey) -> str:
     """Give the key a new webhook secret (committed with the caller's transaction); it. Every attempt from then on,
-    a retry of an earlier delivery included, is signed with it: the sender reads the key's secret at each attempt."""
-    key.webhook_secret = new_secret()
+    a retry of an earlier delivery included, is signed with it: the sender reads the key's secret at each attempt.
+
+    Written only where the key still holds the secret it was read with, then read back: of rotations racing, one
+    writes its secret and all return that one (each had written its own, the last kept, and the others' callers
+    held a secret that never signed anything).
+    """
+    read = key.webhook_secret
+    held = ApiKey.webhook_secret.is_(None) if read is None else ApiKey.webhook_secret == read
+    session.execute(update(ApiKey).where(ApiKey.id == key.id, held)
+                    .values(webhook_secret=new_secret()).execution_options(synchronize_session=False))
+    session.refresh(key, ["webhook_secret"])
     return key.webhook_secret
 
 

@@ -357,6 +357,6 @@ def webhook_secret(*, session: Session, key: ApiKey) -> str:
 
 def rotate_webhook_secret(*, session: Session, key: ApiKey) -> str:
     """A new webhook signing secret for the key, the old one signing nothing from now on."""
-    secret = webhooks.rotate_secret(key)
+    secret = webhooks.rotate_secret(session, key)
     session.commit()
     return secret
