@@ -2474,7 +2474,8 @@ def test_ids_are_one_path_segment_and_names_stay_inside_the_download_folder(tmp_
             return httpx.Response(200, json=[{"name": "../escape.bin", "size": 1, "sha256": "0" * 64}])
         if "redirect" in request.url.raw_path.decode():
             return httpx.Response(200, text="<html>moved</html>", headers={"content-type": "text/html"})
-        return httpx.Response(200, json={"id": "x", "state": "running"})
+        sweep = {"entries": [], "counts": {}, "table": ""} if request.url.path.startswith("/v1/sweeps/") else {}
+        return httpx.Response(200, json={"id": "x", "state": "running", **sweep})
 
     with Client("http://svc.test", transport=httpx.MockTransport(answer)) as client:
         client.get_job("../scenes")
