@@ -153,6 +153,15 @@ def faults(driver, spec: dict) -> None:
     driver.execute_script("sessionStorage.setItem('test.faults', JSON.stringify(arguments[0]))", spec)
 
 
+PROCESSING_SCENE = {"id": "x", "name": "tetra", "state": "processing"}
+"""A scene still processing, as a stand-in answer of ``GET /v1/scenes/{id}`` (:func:`scene_answered`)."""
+
+
+def scene_answered(scene: dict) -> dict:
+    """A :func:`faults` entry answering the page's ``GET`` of a scene with ``scene`` (200, JSON)."""
+    return {"method": "GET", "status": 200, "type": "application/json", "body": json.dumps(scene)}
+
+
 def requested(driver, part: str, method: str = "GET") -> list[dict]:
     """The page's fetch() requests (since it loaded, or ``window.requests = []``) whose URL holds ``part``."""
     return [r for r in driver.execute_script("return window.requests")
@@ -652,8 +661,7 @@ def test_an_upload_s_error_stays_shown_while_an_earlier_upload_s_scene_is_watche
     driver = browser
     error = lambda: text(driver, '[data-error-for="upload"]')  # noqa: E731
     set_key(driver, svc, token)
-    processing = json.dumps({"id": "x", "name": "tetra", "state": "processing"})
-    faults(driver, {"/v1/scenes/": {"method": "GET", "status": 200, "type": "application/json", "body": processing}})
+    faults(driver, {"/v1/scenes/": scene_answered(PROCESSING_SCENE)})
     try:
         driver.find_element("id", "upload-files").send_keys(str(tetrahedron(tmp_path)))
         driver.find_element("css selector", "#upload-form button").click()
@@ -692,8 +700,7 @@ def test_a_second_upload_s_status_is_not_written_over_by_the_first_s_outcome(liv
     driver = browser
     status = lambda: text(driver, "#upload-status")  # noqa: E731
     set_key(driver, svc, token)
-    processing = json.dumps({"id": "x", "name": "tetra", "state": "processing"})
-    faults(driver, {"/v1/scenes/": {"method": "GET", "status": 200, "type": "application/json", "body": processing}})
+    faults(driver, {"/v1/scenes/": scene_answered(PROCESSING_SCENE)})
     made = []
     try:
         for name in ("first", "second"):
@@ -707,12 +714,10 @@ def test_a_second_upload_s_status_is_not_written_over_by_the_first_s_outcome(liv
                        what=f"the {name} upload stored")
             made.append(re.search(r"stored as (\S+);", status())[1])
         first, second = made
-        ready = json.dumps({"id": first, "name": "first", "state": "ready", "warnings": ["a warning of the first"]})
+        ready = {"id": first, "name": "first", "state": "ready", "warnings": ["a warning of the first"]}
         polls = len(requested(driver, f"/v1/scenes/{first}"))
-        faults(driver, {f"/v1/scenes/{first}": {"method": "GET", "status": 200, "type": "application/json",
-                                                "body": ready},
-                        f"/v1/scenes/{second}": {"method": "GET", "status": 200, "type": "application/json",
-                                                 "body": processing}})  # (keys matched in sorted order: no prefix)
+        faults(driver, {f"/v1/scenes/{first}": scene_answered(ready),  # (keys matched in sorted order: no prefix)
+                        f"/v1/scenes/{second}": scene_answered(PROCESSING_SCENE)})
         wait_until(lambda: len(requested(driver, f"/v1/scenes/{first}")) > polls, 10, what="the first told ready")
         polls = len(requested(driver, f"/v1/scenes/{second}"))
         wait_until(lambda: len(requested(driver, f"/v1/scenes/{second}")) >= polls + 2, 10, what="two more polls")
