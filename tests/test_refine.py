@@ -360,7 +360,8 @@ def test_renders_under_8_px_are_refused_before_any_work(tmp_path, make_sphere_gr
     assert RefineConfig(render_size=8).render_size == 8
     out = tmp_path / "out"
     assert _refine_cli(tmp_path, make_sphere_grid, "--render-size", str(size)) == 2
-    assert f"render_size must be at least 8 px, got {size}" in capsys.readouterr().err and not out.exists()
+    assert capsys.readouterr().err == f"voxe refine: error: --render-size must be at least 8 px, got {size}\n"
+    assert not out.exists()
 
 
 @pytest.mark.parametrize("name, value, message", [
