@@ -56,7 +56,8 @@ sends it.
 Stored objects are orphaned when what lies under ``scenes/<id>/``, ``jobs/<id>/`` or ``reconstructions/<id>/`` (an
 unfinished S3 multipart upload included) has no row and was last written ``VOXE_ORPHANED_UPLOAD_AGE_S`` ago: the API
 process storing an upload was killed before it recorded the scene, or a delete's storage cleanup failed after its rows
-went (:func:`reap_orphaned_uploads` deletes them).
+went (:func:`reap_orphaned_uploads` deletes them), and so is a ``_probe/<uuid>`` object an older version's readiness
+probe left (its delete failed) as old: only ``_probe/ready`` is written now.
 
 The API runs :func:`reap_orphaned_jobs` at startup and then every ``VOXE_REAPER_INTERVAL_S`` in a
 background thread (:class:`Reaper`). Every update is conditional on the row still being what the
@@ -83,8 +84,8 @@ from voxe_service.queue import (QueueUnavailable, get_queue, is_sql_broker, requ
                                  send_ingest_again, send_queued_again)
 from voxe_service.scenes import fail_scene
 from voxe_service.settings import Settings
-from voxe_service.storage import (JOBS_PREFIX, RECONSTRUCTIONS_PREFIX, SCENES_PREFIX, get_storage, job_key,
-                                  scene_key)
+from voxe_service.storage import (JOBS_PREFIX, PROBE_KEY, PROBES_PREFIX, RECONSTRUCTIONS_PREFIX, SCENES_PREFIX,
+                                  get_storage, job_key, scene_key)
 
 log = logging.getLogger("voxe.reaper")
 
@@ -318,7 +319,8 @@ ORPHANS_SWEPT = ((SCENES_PREFIX, Scene, "scene"), (JOBS_PREFIX, Job, "job"),
 def reap_orphaned_uploads(settings: Settings, now: datetime | None = None) -> list[str]:
     """Delete what lies under a ``scenes/<id>/``, ``jobs/<id>/`` or ``reconstructions/<id>/`` prefix no row records,
     last written ``orphaned_upload_age_s`` ago (their unfinished S3 multipart uploads aborted: ``delete_prefix``);
-    returns the prefixes deleted (one whose delete failed stays, logged, for the next sweep). An API process killed
+    returns the prefixes deleted (one whose delete failed stays, logged, for the next sweep), then the keys of the
+    older versions' readiness probe objects deleted as old (:func:`_reap_old_probes`). An API process killed
     mid-store, or between storing and recording, or a delete whose storage cleanup failed after its rows went, had
     left them for good: every other cleanup starts from a row.
 
@@ -346,7 +348,27 @@ def reap_orphaned_uploads(settings: Settings, now: datetime | None = None) -> li
             log.warning("reaper: deleted the stored objects under %s, which no %s records (a process stopped between "
                         "storing and recording them, or their cleanup failed after a delete)", orphan, kind)
         orphans += deleted
-    return orphans
+    return orphans + _reap_old_probes(storage, cutoff)
+
+
+def _reap_old_probes(storage, cutoff: datetime) -> list[str]:
+    """Delete the ``_probe/<uuid>`` objects of older versions' readiness probes (each probe wrote its own and deleted
+    it; a failed delete left it for good) last written before ``cutoff``; the probe's own :data:`PROBE_KEY` stays.
+    Returns those deleted; one whose delete failed is logged and stays for the next sweep."""
+    deleted = []
+    for key, written in storage.written_at(PROBES_PREFIX):
+        if key == PROBE_KEY or written >= cutoff:  # (a young one: a probe of an older replica still running)
+            continue
+        try:
+            storage.delete(key)
+        except Exception:  # noqa: BLE001 - as discard_prefixes: the next sweep tries again
+            log.warning("reaper: could not delete the old readiness probe's object %s", key, exc_info=True)
+            continue
+        deleted.append(key)
+    if deleted:
+        log.warning("reaper: deleted %d objects older versions' readiness probes left under %s", len(deleted),
+                    PROBES_PREFIX)
+    return deleted
 
 
 def _send_ingest_again(session, scene_id: str, seen_updated_at: datetime, why: str, lost: bool = False) -> None:

@@ -5382,6 +5382,51 @@ def test_the_reapers_sweep_leaves_an_object_in_no_ids_folder_alone_and_unnamed(d
     assert sorted(storage.list()) == sorted(strays)
 
 
+@pytest.mark.parametrize("server", ["local", "moto"])
+def test_the_reapers_sweep_deletes_the_old_probe_objects_of_older_versions_and_keeps_the_probes_own(
+        db, caplog, monkeypatch, request, server):
+    """Readiness probes before _probe/ready each wrote a _probe/<uuid> object and deleted it; where the delete failed
+    it stayed, and nothing ever swept _probe/ (the sweep reads scenes/, jobs/ and reconstructions/ alone): one object a
+    probe, for good. The sweep now deletes those last written VOXE_ORPHANED_UPLOAD_AGE_S ago; _probe/ready (however
+    old), a young one (an older replica's probe still running) and one whose delete fails stay."""
+    from api import reaper
+    from voxe_service.models import system_now
+    from voxe_service.storage import PROBE_KEY, StorageError, get_storage
+
+    old_probes = [f"_probe/{uuid.uuid4().hex}" for _ in range(3)]
+    with contextlib.ExitStack() as stack:
+        if server == "local":
+            storage = get_storage(db)
+        else:
+            storage = stack.enter_context(s3_bucket(request, server, monkeypatch))
+            monkeypatch.setattr(reaper, "get_storage", lambda _settings: storage)
+        storage.check_writable()
+        for key in old_probes:
+            storage.put_bytes(key, b"ok")
+        later = system_now() + timedelta(seconds=db.orphaned_upload_age_s + 60)  # (S3 dates objects as written)
+        assert reaper.reap_orphaned_uploads(db) == []  # young: an older replica's probe may be reading it back
+        young = f"_probe/{uuid.uuid4().hex}"
+        if server == "local":
+            old = time.time() - db.orphaned_upload_age_s - 60
+            for key in (PROBE_KEY, *old_probes):
+                os.utime(storage.path(key), (old, old))
+            later = None
+            storage.put_bytes(young, b"ok")  # (on S3 the young one is the first sweep's)
+        delete, denied = storage.delete, old_probes[0]
+
+        def denying(key):
+            if key == denied:
+                raise StorageError(f"AccessDenied: may not delete {key}")
+            delete(key)
+
+        monkeypatch.setattr(storage, "delete", denying)
+        with caplog.at_level(logging.WARNING, logger="voxe.reaper"):
+            assert sorted(reaper.reap_orphaned_uploads(db, now=later)) == sorted(old_probes[1:])
+        assert "deleted 2 objects older versions' readiness probes left under _probe/" in caplog.text
+        assert f"could not delete the old readiness probe's object {denied}" in caplog.text
+        assert sorted(storage.list("_probe/")) == sorted([PROBE_KEY, denied] + ([young] if server == "local" else []))
+
+
 @pytest.mark.parametrize("server", ["moto", "seaweedfs"])
 def test_the_reaper_deletes_s3_objects_and_parts_of_jobs_and_reconstructions_no_row_records(monkeypatch, request,
                                                                                           server, db):

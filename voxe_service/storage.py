@@ -64,7 +64,10 @@ JOBS_PREFIX = "jobs/"
 """What every job's objects lie under (:func:`job_key`)."""
 RECONSTRUCTIONS_PREFIX = "reconstructions/"
 """What every reconstruction's objects lie under (:func:`reconstruction_storage_key`)."""
-PROBE_KEY = "_probe/ready"
+PROBES_PREFIX = "_probe/"
+"""What the readiness probe's object lies under: an older version's probes wrote ``_probe/<uuid>`` objects, one each,
+a failed delete leaving it for good (the reaper's sweep takes those)."""
+PROBE_KEY = f"{PROBES_PREFIX}ready"
 """The one object the readiness probe writes and reads back (:meth:`Storage.check_writable`)."""
 
 
