@@ -940,6 +940,46 @@ def test_processes_opening_a_fresh_sql_broker_on_postgresql_at_once_all_open_it(
         assert _processes_at_once(first_open, 4) == [None] * 4
 
 
+def test_a_stuck_holder_of_the_database_setup_lock_fails_a_start_naming_it_after_the_wait(postgres_server, monkeypatch,
+                                                                                            caplog):
+    """pg_advisory_lock waits without limit: a session holding the setup lock and never letting go (a process hung in
+    its migration, a psql left open) had held every API and worker start, migrations and the SQL broker's first
+    open alike, silently for good. The wait now says who holds the lock as it begins, and after SETUP_LOCK_WAIT_S
+    fails naming the lock, the holder's pid and how long it waited; once the holder lets go, a start goes on."""
+    import logging
+    import time
+
+    from sqlalchemy import create_engine, text
+    from sqlalchemy.pool import NullPool
+
+    from voxe_service import db
+    from voxe_service.db import SETUP_LOCK, database_setup, run_migrations
+
+    url = postgres_server.create_database()
+    holder_engine = create_engine(url, poolclass=NullPool)  # (its session, and the lock, end as it closes)
+    monkeypatch.setattr(db, "SETUP_LOCK_WAIT_S", 1.5)
+    try:
+        with holder_engine.connect() as holder:
+            holder.execute(text("SET application_name = 'stuck-migration'"))
+            holder.execute(text("SELECT pg_advisory_lock(:key)"), {"key": SETUP_LOCK})
+            pid = holder.execute(text("SELECT pg_backend_pid()")).scalar_one()
+            started = time.monotonic()
+            with caplog.at_level(logging.WARNING, logger="voxe.db"):
+                with pytest.raises(RuntimeError, match=rf"gave up after waiting 2 s for the database setup lock "
+                                                       rf"\(PostgreSQL advisory lock {SETUP_LOCK}\), held by the "
+                                                       rf"session of pid {pid} \(application 'stuck-migration'"):
+                    run_migrations(url)
+            assert 1.5 <= time.monotonic() - started < 10
+            assert (f"waiting for the database setup lock (PostgreSQL advisory lock {SETUP_LOCK}), held by the "
+                    f"session of pid {pid} (application 'stuck-migration'") in caplog.text
+            assert "giving up after 2 s" in caplog.text
+        with database_setup(url):  # the holder gone: taken at once
+            pass
+        run_migrations(url)
+    finally:
+        holder_engine.dispose()
+
+
 def test_processes_first_using_a_queue_of_the_sql_broker_at_once_all_use_its_one_row(tmp_path):
     """kombu makes a queue's row as a process first sends to or reads it: of the API and a worker doing so at once on
     a fresh broker, one was refused "UNIQUE constraint failed: kombu_queue.name" (9 of 30 trials of four). It reads

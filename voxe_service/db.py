@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import logging
 import os
+import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from datetime import timedelta
@@ -217,6 +218,10 @@ def run_migrations(database_url: str) -> None:
 
 SETUP_LOCK = 0x766F7866
 """The PostgreSQL advisory lock :func:`database_setup` holds (not the migrations' own, which they take inside it)."""
+SETUP_LOCK_WAIT_S = 600.0
+"""How long :func:`database_setup` waits for :data:`SETUP_LOCK` held by another session before it fails naming that
+session: ``pg_advisory_lock`` waits without limit, and a stuck holder (a process hung in its migration, a session left
+open by hand) had held every API and worker start silently for good."""
 
 
 @contextmanager
@@ -236,7 +241,7 @@ def database_setup(url: str) -> Iterator[None]:
         engine = create_engine(url, poolclass=NullPool, hide_parameters=True, connect_args=connect_timeout_args(url))
         try:  # held by the session, in no transaction; released as its connection closes, or its process dies
             with engine.connect().execution_options(isolation_level="AUTOCOMMIT") as connection:
-                connection.execute(text("SELECT pg_advisory_lock(:key)"), {"key": SETUP_LOCK})
+                _take_setup_lock(connection)
                 yield
         finally:
             engine.dispose()
@@ -255,6 +260,37 @@ def database_setup(url: str) -> Iterator[None]:
             pass
         engine.dispose()
         yield
+
+
+def _take_setup_lock(connection) -> None:
+    """Take :data:`SETUP_LOCK` for ``connection``'s session, waiting at most :data:`SETUP_LOCK_WAIT_S`: a warning
+    names the session holding it as the wait begins, and a RuntimeError names it, and how long it waited, at the end."""
+    started, holder = time.monotonic(), None
+    while not connection.execute(text("SELECT pg_try_advisory_lock(:key)"), {"key": SETUP_LOCK}).scalar_one():
+        waited = time.monotonic() - started
+        if waited >= SETUP_LOCK_WAIT_S:
+            raise RuntimeError(f"gave up after waiting {waited:.0f} s for the database setup lock (PostgreSQL advisory "
+                               f"lock {SETUP_LOCK}), held by {_setup_lock_holder(connection)}: a process still setting "
+                               "up the database, or a stuck one (SELECT pg_terminate_backend(<its pid>) ends it)")
+        if holder is None:
+            holder = _setup_lock_holder(connection)
+            log.warning("waiting for the database setup lock (PostgreSQL advisory lock %d), held by %s; giving up "
+                        "after %.0f s", SETUP_LOCK, holder, SETUP_LOCK_WAIT_S)
+        time.sleep(min(0.5, max(SETUP_LOCK_WAIT_S - waited, 0.01)))
+
+
+def _setup_lock_holder(connection) -> str:
+    """The session holding :data:`SETUP_LOCK`, in words (its pid, application, client, state and since when)."""
+    row = connection.execute(text(
+        "SELECT a.pid, a.application_name, a.client_addr, a.state, a.state_change FROM pg_locks l "
+        "JOIN pg_stat_activity a ON a.pid = l.pid WHERE l.locktype = 'advisory' AND l.granted "
+        "AND l.database = (SELECT oid FROM pg_database WHERE datname = current_database()) "
+        "AND l.classid::bigint = 0 AND l.objid::bigint = :key AND l.objsubid = 1"), {"key": SETUP_LOCK}).first()
+    if row is None:  # (released meanwhile, or a session this role may not see)
+        return "another session"
+    since = f" since {row.state_change:%Y-%m-%d %H:%M:%S %Z}" if row.state_change else ""
+    return (f"the session of pid {row.pid} (application {row.application_name or '(none)'!r}, client "
+            f"{row.client_addr or 'local socket'}, {row.state or 'state not shown'}{since})")
 
 
 def reset_caches() -> None:
