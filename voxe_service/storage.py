@@ -457,6 +457,7 @@ class S3Storage(Storage):
     the service's own keys' parts are far shorter). ``timeout``: the seconds a connect or a read
     waits for the endpoint, each of a request's :data:`S3_TRIES` tries (the service's VOXE_S3_TIMEOUT_S; 60 is
     botocore's own); a request with a body waits 1 s more a try, botocore's wait for the endpoint's 100 Continue.
+    A read's timeout bounds each wait for the next bytes, not the request: an endpoint trickling its body holds it.
     """
 
     def __init__(self, bucket: str, endpoint_url: str | None = None, region: str | None = None,
