@@ -57,7 +57,8 @@ Stored objects are orphaned when what lies under ``scenes/<id>/``, ``jobs/<id>/`
 unfinished S3 multipart upload included) has no row and was last written ``VOXE_ORPHANED_UPLOAD_AGE_S`` ago: the API
 process storing an upload was killed before it recorded the scene, or a delete's storage cleanup failed after its rows
 went (:func:`reap_orphaned_uploads` deletes them), and so is a ``_probe/<uuid>`` object an older version's readiness
-probe left (its delete failed) as old: only ``_probe/ready`` is written now.
+probe left (its delete failed) as old: only ``_probe/ready`` is written now. An unfinished write started as long ago
+under a row that lives on, or in no ``<id>/`` folder, is abandoned (``Storage.discard_unfinished``).
 
 The API runs :func:`reap_orphaned_jobs` at startup and then every ``VOXE_REAPER_INTERVAL_S`` in a
 background thread (:class:`Reaper`). Every update is conditional on the row still being what the
@@ -320,7 +321,10 @@ def reap_orphaned_uploads(settings: Settings, now: datetime | None = None) -> li
     """Delete what lies under a ``scenes/<id>/``, ``jobs/<id>/`` or ``reconstructions/<id>/`` prefix no row records,
     last written ``orphaned_upload_age_s`` ago (their unfinished S3 multipart uploads aborted: ``delete_prefix``);
     returns the prefixes deleted (one whose delete failed stays, logged, for the next sweep), then the keys of the
-    older versions' readiness probe objects deleted as old (:func:`_reap_old_probes`). An API process killed
+    older versions' readiness probe objects deleted as old (:func:`_reap_old_probes`). An unfinished write (an S3
+    multipart upload, a local temporary file) started as long ago under a recorded row, or in no ``<id>/`` folder, is
+    abandoned too (``discard_unfinished``), its key returned: a writer stopped mid-write under a job that lived on
+    had left its parts, billed, until the job was deleted. An API process killed
     mid-store, or between storing and recording, or a delete whose storage cleanup failed after its rows went, had
     left them for good: every other cleanup starts from a row.
 
@@ -348,6 +352,12 @@ def reap_orphaned_uploads(settings: Settings, now: datetime | None = None) -> li
             log.warning("reaper: deleted the stored objects under %s, which no %s records (a process stopped between "
                         "storing and recording them, or their cleanup failed after a delete)", orphan, kind)
         orphans += deleted
+        unfinished = storage.discard_unfinished(prefix, cutoff)  # (under a row that lives on, or in no <id>/ folder)
+        if unfinished:
+            log.warning("reaper: abandoned %d unfinished writes under %s started before %s (their writers were "
+                        "stopped mid-write): %s", len(unfinished), prefix, f"{cutoff:%Y-%m-%d %H:%M:%S %Z}",
+                        ", ".join(unfinished[:5]) + (", ..." if len(unfinished) > 5 else ""))
+        orphans += unfinished
     return orphans + _reap_old_probes(storage, cutoff)
 
 

@@ -5427,6 +5427,58 @@ def test_the_reapers_sweep_deletes_the_old_probe_objects_of_older_versions_and_k
         assert sorted(storage.list("_probe/")) == sorted([PROBE_KEY, denied] + ([young] if server == "local" else []))
 
 
+@pytest.mark.parametrize("server", ["local", "moto", "seaweedfs"])
+def test_the_reapers_sweep_abandons_old_unfinished_writes_under_recorded_rows_and_in_no_ids_folder(
+        db, caplog, monkeypatch, request, server):
+    """A worker killed mid-upload under a job that lives on (sent again, it succeeds) left its unfinished write: S3's
+    multipart parts (billed, in no listing) or a local temporary file, kept until the job was deleted, as was one in
+    no <id>/ folder (jobs/stray.bin), for good: the sweep looked only for prefixes no row records. It now abandons
+    each one started VOXE_ORPHANED_UPLOAD_AGE_S ago, naming it; the recorded job's objects stay, and a young write
+    (still going) stays (SeaweedFS and local: moto dates its uploads in 2010)."""
+    from api import reaper
+    from voxe_service.models import system_now
+    from voxe_service.storage import get_storage
+
+    job = add_job(add_scene(), "succeeded", 0)
+    kept = f"jobs/{job}/result.safetensors"
+    unfinished = [f"jobs/{job}/grid.safetensors", "jobs/stray.bin"]
+    with contextlib.ExitStack() as stack:
+        if server == "local":
+            storage = get_storage(db)
+            writes = [storage.path(f"jobs/{job}/.grid.safetensors.{'1' * 32}.tmp"),
+                      storage.path(f"jobs/.stray.bin.{'2' * 32}.tmp")]
+            unfinished = [path.relative_to(storage.root).as_posix() for path in writes]
+            storage.put_bytes(kept, b"bytes")
+
+            def start_writes():
+                for path in writes:
+                    path.write_bytes(b"part")
+
+            def uploads() -> list[str]:
+                return sorted(path.relative_to(storage.root).as_posix() for path in writes if path.exists())
+        else:
+            storage = stack.enter_context(s3_bucket(request, server, monkeypatch))
+            monkeypatch.setattr(reaper, "get_storage", lambda _settings: storage)
+            storage.put_bytes(kept, b"bytes")
+
+            def start_writes():
+                for key in unfinished:
+                    storage.client.create_multipart_upload(Bucket=storage.bucket, Key=key)
+
+            def uploads() -> list[str]:
+                return multipart_uploads(storage)
+        start_writes()
+        if server != "moto":
+            assert reaper.reap_orphaned_uploads(db) == []  # young: they may still be being written
+            assert uploads() == sorted(unfinished)
+        later = system_now() + timedelta(seconds=db.orphaned_upload_age_s + 60)
+        with caplog.at_level(logging.WARNING, logger="voxe.reaper"):
+            assert sorted(reaper.reap_orphaned_uploads(db, now=later)) == sorted(unfinished)
+        assert uploads() == [] and storage.list() == [kept]
+        assert "reaper: abandoned 2 unfinished writes under jobs/ started before" in caplog.text
+        assert all(key in caplog.text for key in unfinished)
+
+
 @pytest.mark.parametrize("server", ["moto", "seaweedfs"])
 def test_the_reaper_deletes_s3_objects_and_parts_of_jobs_and_reconstructions_no_row_records(monkeypatch, request,
                                                                                           server, db):

@@ -163,6 +163,14 @@ class Storage(ABC):
         reaper's sweep reads every stored object's."""
 
     @abstractmethod
+    def discard_unfinished(self, prefix: str, before: datetime) -> list[str]:
+        """Abandon each unfinished write under ``prefix`` started (local: last written) before ``before``: a writer
+        killed mid-write left it, under a row that lives on (a job sent again after its worker was killed mid-upload)
+        or in no ``<id>/`` folder, where only a delete of its prefix had taken it, billed for good (S3's parts) or
+        taking disk. Local: its temporary file deleted; S3: its multipart upload aborted. Returns their keys; one
+        that fails is logged and stays."""
+
+    @abstractmethod
     def delete(self, key: str) -> None:
         """Delete one object; deleting a missing key is not an error."""
 
@@ -338,6 +346,19 @@ class LocalStorage(Storage):
                 yield name, datetime.fromtimestamp((self.root / name).stat().st_mtime, timezone.utc)
             except FileNotFoundError:  # deleted (or renamed into place) since it was listed
                 continue
+
+    def discard_unfinished(self, prefix, before) -> list[str]:
+        discarded = []
+        for name, writing in self._files(prefix):
+            try:
+                if writing and datetime.fromtimestamp((self.root / name).stat().st_mtime, timezone.utc) < before:
+                    (self.root / name).unlink()
+                    discarded.append(name)
+            except FileNotFoundError:  # renamed into place, or deleted, since it was listed
+                continue
+            except OSError:
+                log.warning("could not delete the unfinished write %s", name, exc_info=True)
+        return discarded
 
     def delete_prefix(self, prefix: str) -> int:
         """Also removes the temporary files of writers killed mid-write under ``prefix`` (never listed)."""
@@ -652,21 +673,36 @@ class S3Storage(Storage):
                 raise StorageError(f"could not delete {len(errors)} object(s) under {prefix!r}: {shown}")
         return len(keys)
 
-    def _abort_uploads(self, prefix: str) -> None:
-        """Abort the multipart uploads under ``prefix`` that never completed: a writer killed mid-upload (a worker
-        killed for memory) leaves its parts stored, and billed, under no object a listing shows, until aborted."""
+    def discard_unfinished(self, prefix, before) -> list[str]:
+        if not _may_start_a_key(prefix):
+            return []
+        try:
+            return self._abort_uploads(prefix, before)
+        except StorageError as exc:  # (a role without the multipart permissions, the store down: the next sweep)
+            log.warning("could not abort the unfinished uploads under %r (%s)", prefix, exc)
+            return []
+
+    def _abort_uploads(self, prefix: str, before: datetime | None = None) -> list[str]:
+        """Abort the multipart uploads under ``prefix`` that never completed (those started before ``before``, if
+        given): a writer killed mid-upload (a worker killed for memory) leaves its parts stored, and billed, under no
+        object a listing shows, until aborted. Returns their keys."""
         from botocore.exceptions import ClientError
 
+        aborted = []
         paginator = self.client.get_paginator("list_multipart_uploads")
         with self._as_storage_errors():
             for page in paginator.paginate(Bucket=self.bucket, Prefix=self.prefix + prefix):
                 for upload in page.get("Uploads", []):
+                    if before is not None and upload["Initiated"] >= before:
+                        continue
                     try:
                         self.client.abort_multipart_upload(Bucket=self.bucket, Key=upload["Key"],
                                                            UploadId=upload["UploadId"])
                     except ClientError as exc:
                         if _error_code(exc) != "NoSuchUpload":  # (completed or aborted since it was listed)
                             raise
+                    aborted.append(upload["Key"][len(self.prefix):])
+        return aborted
 
     def describe(self) -> str:
         return f"s3:{self.bucket}/{self.prefix}"
