@@ -1178,6 +1178,23 @@ def test_a_refused_webhook_names_the_kind_of_address_not_the_address_keeping_tha
     assert len(logged) == 2 and all("resolves to 10.0.0.5, a private address" in m for m in logged), logged
 
 
+@pytest.mark.parametrize("url, host, kind", [
+    ("http://[fe80::1%25eth0]/hook", "fe80::1%25eth0", "a link-local"),
+    ("http://[fe80::1%25no-such-interface]:8080/hook", "fe80::1%25no-such-interface", "a link-local"),
+    ("http://[::1%25lo]/hook", "::1%25lo", "a loopback"),
+])
+def test_an_ipv6_address_with_a_zone_is_refused_by_its_kind(url, host, kind):
+    """An IPv6 address with its zone, as a URL writes one (RFC 6874's "%25" for the '%'): the resolver, asked for that
+    spelling, knew no such name, so it had been refused as "does not resolve: Name or service not known", not by its
+    kind as the address without its zone is. It is judged as the address it spells, whatever interface it names."""
+    from voxe_service.webhooks import TargetRefused, check_target
+
+    with pytest.raises(TargetRefused) as refused:
+        check_target(url, [], 2.0)
+    assert str(refused.value) == (f"webhook_url host {host!r} resolves to {kind} address: webhooks go to public "
+                                  "addresses only (an operator can allow networks with VOXE_WEBHOOK_ALLOW_NETWORKS)")
+
+
 def test_a_job_whose_webhook_name_resolves_too_slowly_is_refused_within_the_webhook_timeout(client, monkeypatch):
     """A resolver that takes 10 s to answer: the job's creation, which checks its webhook's host, is refused at the
     0.5 s VOXE_WEBHOOK_TIMEOUT_S with a 422 naming the lookup and the setting (the check's lookup had held the

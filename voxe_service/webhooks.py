@@ -228,21 +228,44 @@ def allowed_addresses(host: str, port: int, allow_networks: list[ipaddress._Base
 
     The refusal's message (a job's 422, a delivery's ``last_error``) names no address, its ``logged`` form does: any
     key holder could otherwise map the internal names the service's resolver knows ("resolves to 10.0.0.5")."""
+    literal = _address_literal(host)
+    if literal is not None:  # judged before the lookup: one of a zone it does not know had been "does not resolve"
+        _refuse_unless_allowed(host, literal, allow_networks)
     try:
-        infos = socket.getaddrinfo(host, port, proto=socket.IPPROTO_TCP)
+        infos = socket.getaddrinfo(host if literal is None else str(literal), port, proto=socket.IPPROTO_TCP)
     except ValueError as exc:
         raise TargetRefused(f"webhook_url host {host!r} does not resolve: {exc}") from None
     addresses = []
     for info in infos:
-        address = ipaddress.ip_address(info[4][0].split("%")[0])
-        if not any(address in network for network in allow_networks) and (rule := refused_rule(address)):
-            kind = rule.partition(" (as ")[0]  # ("private (as 10.1.2.3)": the address it carries is the log's)
-            why = ("address: webhooks go to public addresses only (an operator can allow networks with "
-                   "VOXE_WEBHOOK_ALLOW_NETWORKS)")
-            raise TargetRefused(f"webhook_url host {host!r} resolves to {_a(kind)} {why}",
-                                f"webhook_url host {host!r} resolves to {address}, {_a(rule)} {why}")
+        _refuse_unless_allowed(host, ipaddress.ip_address(info[4][0].split("%")[0]), allow_networks)
         addresses.append(info[4][0])
     return list(dict.fromkeys(addresses))
+
+
+def _address_literal(host: str) -> ipaddress.IPv4Address | ipaddress.IPv6Address | None:
+    """The IP address ``host`` spells, None for a name. An IPv6 one's zone is read as a URL writes it, RFC 6874's
+    ``%25`` for the '%' (``fe80::1%25eth0``), which ``ipaddress`` and the resolver read as ``fe80::1%eth0``.
+
+    Examples:
+        >>> _address_literal("fe80::1%25eth0"), _address_literal("10.0.0.1"), _address_literal("hooks.example")
+        (IPv6Address('fe80::1%eth0'), IPv4Address('10.0.0.1'), None)
+    """
+    try:
+        return ipaddress.ip_address(host.replace("%25", "%", 1) if ":" in host else host)
+    except ValueError:
+        return None
+
+
+def _refuse_unless_allowed(host: str, address: ipaddress.IPv4Address | ipaddress.IPv6Address,
+                           allow_networks: list[ipaddress._BaseNetwork]) -> None:
+    """:class:`TargetRefused` naming ``address``'s kind (``refused_rule``) unless it is public or ``allow_networks``
+    holds it."""
+    if not any(address in network for network in allow_networks) and (rule := refused_rule(address)):
+        kind = rule.partition(" (as ")[0]  # ("private (as 10.1.2.3)": the address it carries is the log's)
+        why = ("address: webhooks go to public addresses only (an operator can allow networks with "
+               "VOXE_WEBHOOK_ALLOW_NETWORKS)")
+        raise TargetRefused(f"webhook_url host {host!r} resolves to {_a(kind)} {why}",
+                            f"webhook_url host {host!r} resolves to {address}, {_a(rule)} {why}")
 
 
 def _a(word: str) -> str:
@@ -272,11 +295,7 @@ def allowed_addresses_within(host: str, port: int, allow_networks: list[ipaddres
     caller goes on; with every one of the :data:`LOOKUP_THREADS` slots held that long, it times out unstarted. An IP
     address is judged at once, with no thread or slot: no resolver is asked (names stuck on one had held every slot,
     and a webhook to an address was refused as "did not resolve", its attempts timed out)."""
-    try:
-        ipaddress.ip_address(host)
-    except ValueError:
-        pass
-    else:
+    if _address_literal(host) is not None:
         return allowed_addresses(host, port, allow_networks)
     deadline = None if timeout is None else time.monotonic() + timeout
     if not _lookup_slots.acquire(timeout=timeout):
