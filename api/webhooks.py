@@ -10,8 +10,9 @@ failed attempt (an error, a timeout, a non-2xx) is retried after ``VOXE_WEBHOOK_
 until ``VOXE_WEBHOOK_RETRY_FOR_S`` after the event (the last try at that time); then the delivery is ``failed`` with
 the last error, as it is at once when the receiver answered 410 Gone (it says it is gone for good), and so are the
 job's other deliveries to that URL, pending or later, never sent. Claims are
-conditional updates, so several API processes may send side by side without sending one attempt twice. The pool and
-the shares are this process's own: N API processes hold up to N times as many.
+conditional updates, so several API processes may send side by side without sending one attempt twice; a claim no
+attempt had begun when the sender stops is given back, uncounted. The pool and the shares are this process's own: N API
+processes hold up to N times as many.
 """
 
 from __future__ import annotations
@@ -28,8 +29,8 @@ from voxe_service.failing import FailingStreak
 from voxe_service.models import ApiKey, Job, WebhookDelivery, utcnow
 from voxe_service.settings import Settings
 from voxe_service.webhooks import (
-    DELIVERED, GAVE_UP, GONE, PENDING, Attempt, Claim, InFlight, Shares, TargetRefused, attempt, claim_due, retry_at,
-    stop_after_gone, webhook_client,
+    DELIVERED, GAVE_UP, GONE, PENDING, Attempt, Claim, InFlight, Shares, TargetRefused, attempt, claim_due, give_back,
+    retry_at, stop_after_gone, webhook_client,
 )
 
 log = logging.getLogger("voxe.webhooks")
@@ -52,6 +53,7 @@ class WebhookSender:
         self._shares = Shares.of(settings.webhook_concurrency)  # so no receiver or key ever holds every slot
         self._in_flight = InFlight()  # attempts in flight, by receiver (webhook_origin) and key
         self._in_flight_lock = threading.Lock()
+        self._unsent: dict[str, Claim] = {}  # claimed, not yet taken by an attempt: given back at stop
 
     def start(self) -> "WebhookSender":
         self._thread = threading.Thread(target=self._loop, name="voxe-webhooks", daemon=True)
@@ -63,6 +65,7 @@ class WebhookSender:
         if self._thread is not None:
             self._thread.join(timeout=5)
         self._pool.shutdown(wait=False, cancel_futures=True)
+        self._give_back(list(self._unsent.values()))
         self._client.close()
 
     def _loop(self) -> None:
@@ -103,13 +106,34 @@ class WebhookSender:
             self._in_flight.walked_to = in_flight.walked_to
             self._in_flight.by_origin.update(claim.origin for claim in claimed)
             self._in_flight.by_key.update(claim.key_id for claim in claimed)
+            self._unsent.update((claim.delivery_id, claim) for claim in claimed)
         for claim in claimed:
-            self._pool.submit(self._send, claim)
+            try:
+                self._pool.submit(self._send, claim)
+            except RuntimeError:  # stop() shut the pool since the claim
+                self._give_back([claim])
         return len(claimed)
+
+    def _take(self, claims: list[Claim]) -> list[Claim]:
+        """Of ``claims``, those not yet taken (by an attempt or a give-back), now taken: each is taken once."""
+        with self._in_flight_lock:
+            return [claim for claim in claims if self._unsent.pop(claim.delivery_id, None) is not None]
+
+    def _give_back(self, claims: list[Claim]) -> None:
+        """Claims no attempt took, the sender stopping: due again, uncounted (:func:`give_back`). Where that fails
+        (the database gone), their leases lapse and the attempts stay counted, as before."""
+        if claims := self._take(claims):
+            try:
+                with session_scope() as session:
+                    give_back(session, claims)
+            except Exception:  # noqa: BLE001 - stopping: the leases lapse instead
+                log.warning("webhook sender: %d claimed deliveries not given back", len(claims), exc_info=True)
 
     def _send(self, claim: Claim) -> None:
         delivery_id = claim.delivery_id
         try:
+            if not self._take([claim]):  # given back (stop) before this attempt began
+                return
             with session_scope() as session:
                 delivery = session.get(WebhookDelivery, delivery_id)
                 if delivery is None:  # its job was deleted (with its scene) since the claim: nothing to send

@@ -708,6 +708,52 @@ def test_a_delivery_whose_job_was_deleted_after_its_claim_is_dropped_without_a_w
     assert not sender._in_flight.by_origin and not sender._in_flight.by_key  # (counted out again)
 
 
+def test_a_delivery_claimed_but_not_sent_when_the_sender_stops_goes_back_unattempted(tmp_path, monkeypatch,
+                                                                                     database_url):
+    """A sender stopping (the API shutting down) with a delivery claimed and its attempt not yet begun (queued for a
+    pool thread, which stop cancels): the claim had counted the attempt (``attempts`` 1, none sent, the next backoff
+    doubled) and leased the delivery for the attempt's deadline and 30 s, so a restart waited that long and ate an
+    attempt. It goes back as it was: due when it was, ``attempts`` 0, and the next sender claims it at once; an attempt
+    whose turn comes after the stop sends nothing."""
+    from sqlalchemy import select, update
+
+    from api.webhooks import WebhookSender
+    from voxe_service.db import session_scope
+    from voxe_service.models import ApiKey, WebhookDelivery
+    from voxe_service.settings import get_settings
+    from voxe_service.webhooks import new_secret
+
+    receiver = WebhookReceiver()
+    monkeypatch.setenv("VOXE_WEBHOOK_ALLOW_NETWORKS", "127.0.0.0/8")
+    due_deliveries(tmp_path, monkeypatch, database_url, [(receiver.url, -5)])
+    try:
+        with session_scope() as session:
+            due = session.scalar(select(WebhookDelivery.next_attempt_at))
+            session.execute(update(ApiKey).values(webhook_secret=new_secret()))  # (a job's creation makes it)
+        stopping = WebhookSender(get_settings())
+        queued = []
+        monkeypatch.setattr(stopping._pool, "submit", lambda send, claim: queued.append(claim))
+        assert stopping.send_due() == 1
+        stopping.stop()
+        stopping._send(queued[0])  # (a pool thread that took it after all: it was given back)
+        with session_scope() as session:
+            row = session.execute(select(WebhookDelivery.attempts, WebhookDelivery.next_attempt_at,
+                                         WebhookDelivery.state)).one()
+        assert tuple(row) == (0, due, "pending") and receiver.requests == []
+        restarted = WebhookSender(get_settings())
+        try:
+            assert restarted.send_due() == 1
+            wait_until(lambda: receiver.requests, timeout=10)
+        finally:
+            restarted.stop()
+        with session_scope() as session:
+            assert tuple(session.execute(select(WebhookDelivery.attempts, WebhookDelivery.state)).one()) == (
+                1, "delivered")
+    finally:
+        receiver.close()
+        reset_service_caches()
+
+
 def test_a_claims_work_does_not_grow_with_a_dead_receivers_backlog(tmp_path, monkeypatch):
     """A claim ranked every due delivery, each poll (twice a second): with 100,000 due to a dead receiver it took a
     quarter of a second on SQLite, a tenth on PostgreSQL, where it had taken 2 ms. It reads each receiver's earliest

@@ -564,11 +564,14 @@ ORIGIN_FILL_BATCH = 1000  # deliveries without an origin given one per claim, at
 
 
 class Claim(NamedTuple):
-    """A delivery a claim won: the receiver (:func:`webhook_origin`) and the API key its attempt counts to."""
+    """A delivery a claim won: the receiver (:func:`webhook_origin`) and the API key its attempt counts to; when it
+    was due and the end of the claim's lease (what :func:`give_back` puts back)."""
 
     delivery_id: str
     origin: str
     key_id: str
+    due: datetime
+    leased_to: datetime
 
 
 class Shares(NamedTuple):
@@ -639,15 +642,29 @@ def claim_due(session: Session, now: datetime, lease_s: float, limit: int, share
         found = {row.id: row for row in (*earliest, *candidates)}  # (the walk's window may not hold the first read's)
         chosen = _within_shares(sorted(found.values()), limit, shares, in_flight)
     won = []
-    for _due, delivery_id, origin, key_id in chosen:
+    leased_to = now + timedelta(seconds=lease_s)
+    for due_at, delivery_id, origin, key_id in chosen:
         result = session.execute(
             update(WebhookDelivery)
             .where(WebhookDelivery.id == delivery_id, pending, WebhookDelivery.next_attempt_at <= now)
-            .values(next_attempt_at=now + timedelta(seconds=lease_s), attempts=WebhookDelivery.attempts + 1)
+            .values(next_attempt_at=leased_to, attempts=WebhookDelivery.attempts + 1)
         )
         if result.rowcount == 1:
-            won.append(Claim(delivery_id, origin, key_id))
+            won.append(Claim(delivery_id, origin, key_id, due_at, leased_to))
     return won
+
+
+def give_back(session: Session, claims: list[Claim]) -> None:
+    """Undo ``claims`` whose attempts were never made (their sender stopped first): each due again when it was, its
+    attempt uncounted. They had kept the attempt (a restart counted one per delivery claimed, none sent, each
+    lengthening the next backoff) and waited out the lease. Only where the lease still holds it (nothing recorded
+    since)."""
+    for claim in claims:
+        session.execute(update(WebhookDelivery)
+                        .where(WebhookDelivery.id == claim.delivery_id, WebhookDelivery.state == PENDING,
+                               WebhookDelivery.next_attempt_at == claim.leased_to)
+                        .values(next_attempt_at=claim.due, attempts=WebhookDelivery.attempts - 1)
+                        .execution_options(synchronize_session=False))
 
 
 def _sent_or_ended():
