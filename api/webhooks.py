@@ -9,10 +9,10 @@ failed attempt (an error, a timeout, a non-2xx) is retried after ``VOXE_WEBHOOK_
 (or the longer wait a 429's or 503's ``Retry-After`` asks, at most ``VOXE_WEBHOOK_MAX_BACKOFF_S``),
 until ``VOXE_WEBHOOK_RETRY_FOR_S`` after the event (the last try at that time); then the delivery is ``failed`` with
 the last error, as it is at once when the receiver answered 410 Gone (it says it is gone for good), and so are the
-job's other deliveries to that URL, pending or later, never sent. Claims are
-conditional updates, so several API processes may send side by side without sending one attempt twice; a claim no
-attempt had begun when the sender stops is given back, uncounted. The pool and the shares are this process's own: N API
-processes hold up to N times as many.
+job's other deliveries to that URL, pending or later, never sent (one in flight then is recorded as it went).
+Claims are conditional updates, so several API processes may send side by side without sending one attempt twice; a
+claim no attempt had begun when the sender stops is given back, uncounted. The pool and the shares are this process's
+own: N API processes hold up to N times as many.
 """
 
 from __future__ import annotations
@@ -30,7 +30,7 @@ from voxe_service.models import ApiKey, Job, WebhookDelivery, utcnow
 from voxe_service.settings import Settings
 from voxe_service.webhooks import (
     DELIVERED, GAVE_UP, GONE, PENDING, Attempt, Claim, InFlight, Shares, TargetRefused, attempt, claim_due, give_back,
-    retry_at, stop_after_gone, webhook_client,
+    record_stopped_in_flight, retry_at, stop_after_gone, webhook_client,
 )
 
 log = logging.getLogger("voxe.webhooks")
@@ -171,7 +171,9 @@ class WebhookSender:
             log.info("webhook delivery %s (job %s) attempt %d: %s", delivery.id, delivery.job_id, delivery.attempts,
                      logged)
         with session_scope() as session:
-            session.execute(update(WebhookDelivery).where(WebhookDelivery.id == delivery.id,
-                                                          WebhookDelivery.state == PENDING).values(**values))
+            if not session.execute(update(WebhookDelivery).where(WebhookDelivery.id == delivery.id,
+                                                                 WebhookDelivery.state == PENDING)
+                                   .values(**values)).rowcount:
+                record_stopped_in_flight(session, delivery, values)
             if status == GONE:  # the receiver stops the job's deliveries, not this one only
                 stop_after_gone(session, delivery)

@@ -289,6 +289,50 @@ def test_a_receiver_answering_410_gone_is_sent_none_of_the_jobs_later_deliveries
         gone.close()
 
 
+@pytest.mark.parametrize("answer, row", [
+    ((200, None), ("delivered", 1, 200, None)),
+    ((500, "the receiver answered 500"),
+     ("failed", 1, 500, "the receiver answered 500; not tried again: the receiver answered 410 Gone to this job's "
+                        "delivery msg_000000 (gone for good)")),
+])
+def test_a_delivery_in_flight_when_its_receiver_answers_410_to_another_is_recorded_as_it_went(
+        tmp_path, monkeypatch, database_url, answer, row):
+    """Two of a job's deliveries to one URL in flight at once, the first answered 410 Gone: that failed the second
+    "not sent" (attempts 1, no status), and its own answer, arriving after, was dropped, so a delivery the receiver
+    took read "failed, not sent" while the log told its attempt. It is recorded as its attempt went: delivered on a
+    2xx; otherwise failed with its own status and error, not tried again (the receiver is gone)."""
+    from sqlalchemy import select, update
+
+    import api.webhooks
+    from api.webhooks import WebhookSender
+    from voxe_service.db import session_scope
+    from voxe_service.models import ApiKey, WebhookDelivery
+    from voxe_service.settings import get_settings
+    from voxe_service.webhooks import Attempt, new_secret
+
+    due_deliveries(tmp_path, monkeypatch, database_url, [("https://hooks.example/in", -2),
+                                                         ("https://hooks.example/in", -1)])
+    answers = {"msg_000000": Attempt(410, "the receiver answered 410 Gone", "gone"),
+               "msg_000001": Attempt(*answer, answer[1])}
+    monkeypatch.setattr(api.webhooks, "attempt", lambda delivery, secret, client: answers[delivery.id])
+    sender = WebhookSender(get_settings())
+    claims = []
+    monkeypatch.setattr(sender._pool, "submit", lambda send, claim: claims.append(claim))
+    try:
+        with session_scope() as session:
+            session.execute(update(ApiKey).values(webhook_secret=new_secret()))
+        assert sender.send_due() == 2  # both in flight
+        for claim in claims:  # the 410 recorded first
+            sender._send(claim)
+        with session_scope() as session:
+            rows = session.execute(select(WebhookDelivery.state, WebhookDelivery.attempts, WebhookDelivery.last_status,
+                                          WebhookDelivery.last_error).order_by(WebhookDelivery.id)).all()
+    finally:
+        sender.stop()
+        reset_service_caches()
+    assert [tuple(r) for r in rows] == [("failed", 1, 410, "the receiver answered 410 Gone"), row], rows
+
+
 @pytest.mark.parametrize("client", [SLOW_RETRIES], indirect=True)
 @pytest.mark.parametrize(("status", "retry_after", "waited"), [
     (429, "30", 30), (503, "in 45 s", 45), (503, "7200", 60), (429, "1", 5)])

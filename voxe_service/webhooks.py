@@ -496,15 +496,20 @@ def enqueue(session: Session, job_id: str, event) -> None:
     }
     if event.kind in ("artifact", "preview"):
         body["data"]["artifact_url"] = f"/v1/jobs/{job_id}/artifacts/{event.detail}"
-    gone = session.scalar(select(WebhookDelivery.id).where(WebhookDelivery.job_id == job_id,
-                                                           WebhookDelivery.url == hook.webhook_url,
-                                                           WebhookDelivery.last_status == GONE).limit(1))
+    gone = gone_delivery(session, job_id, hook.webhook_url)
     session.add(WebhookDelivery(
         id=f"msg_{secrets.token_hex(16)}", job_id=job_id, event_id=event.id, event_type=body["type"],
         url=hook.webhook_url, origin=webhook_origin(hook.webhook_url), payload=json.dumps(body, separators=(",", ":")),
         state=PENDING if gone is None else GAVE_UP, attempts=0, next_attempt_at=utcnow() if gone is None else None,
         last_error=None if gone is None else not_sent_after_gone(gone), created_at=utcnow(),
     ))
+
+
+def gone_delivery(session: Session, job_id: str, url: str) -> str | None:
+    """The id of the job's delivery to ``url`` that its receiver answered 410 Gone, if any."""
+    return session.scalar(select(WebhookDelivery.id).where(WebhookDelivery.job_id == job_id,
+                                                           WebhookDelivery.url == url,
+                                                           WebhookDelivery.last_status == GONE).limit(1))
 
 
 def not_sent_after_gone(gone_id: str) -> str:
@@ -523,6 +528,24 @@ def stop_after_gone(session: Session, delivery: WebhookDelivery) -> None:
                            WebhookDelivery.state == PENDING, WebhookDelivery.id != delivery.id)
                     .values(state=GAVE_UP, next_attempt_at=None, last_error=not_sent_after_gone(delivery.id))
                     .execution_options(synchronize_session=False))
+
+
+def record_stopped_in_flight(session: Session, delivery: WebhookDelivery, values: dict) -> None:
+    """Record an attempt of ``delivery`` (its outcome's ``values``) that was in flight when another of the job's
+    deliveries to its URL was answered 410 Gone, which failed it "not sent" (:func:`stop_after_gone`): what the
+    attempt did, as the log says it, a 2xx delivered, else failed with its own status and error (not tried again).
+    The row had kept "not sent" with the attempt counted, though the receiver was sent it and may have taken it."""
+    gone = gone_delivery(session, delivery.job_id, delivery.url)
+    if gone is None:
+        return
+    if "state" not in values:  # a retry planned: none goes to that receiver any more
+        values = {**values, "state": GAVE_UP, "next_attempt_at": None,
+                  "last_error": f"{values['last_error']}; not tried again: the receiver answered 410 Gone to this "
+                                f"job's delivery {gone} (gone for good)"}
+    session.execute(update(WebhookDelivery)
+                    .where(WebhookDelivery.id == delivery.id, WebhookDelivery.state == GAVE_UP,
+                           WebhookDelivery.last_error == not_sent_after_gone(gone))
+                    .values(**values).execution_options(synchronize_session=False))
 
 
 def webhook_origin(url: str) -> str:
