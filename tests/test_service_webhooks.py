@@ -342,6 +342,40 @@ def test_a_delivery_in_flight_when_its_receiver_answers_410_to_another_is_record
 
 
 @pytest.mark.parametrize("client", [SLOW_RETRIES], indirect=True)
+def test_deleting_a_scene_drops_its_jobs_pending_webhook_deliveries_unsent(client):
+    """What the README says of a scene deleted with its jobs' deliveries pending (a job canceled, its ``canceled``
+    not sent yet): they go with the jobs, never sent, and their state can no longer be read (the job's webhooks
+    404); the sender finds nothing to send and logs nothing. (Their job_url and artifact_url would answer 404.)"""
+    from sqlalchemy import func, select
+
+    from api.webhooks import WebhookSender
+    from voxe_service.db import session_scope
+    from voxe_service.models import WebhookDelivery
+    from voxe_service.settings import get_settings
+
+    test_client, scene = client
+    receiver = WebhookReceiver()
+    try:
+        job = test_client.post("/v1/jobs", json={"scene_id": scene["id"], "prompt": "a mic made of gold",
+                                                 "webhook_url": receiver.url}).json()
+        assert test_client.post(f"/v1/jobs/{job['id']}/cancel").json()["state"] == "canceled"
+        [pending] = test_client.get(f"/v1/jobs/{job['id']}/webhooks").json()
+        assert (pending["event_type"], pending["state"]) == ("job.canceled", "pending"), pending
+        assert test_client.delete(f"/v1/scenes/{scene['id']}").status_code == 204
+        assert test_client.get(f"/v1/jobs/{job['id']}/webhooks").status_code == 404
+        sender = WebhookSender(get_settings())
+        try:
+            assert sender.send_due() == 0
+        finally:
+            sender.stop()
+        with session_scope() as session:
+            assert session.scalar(select(func.count()).select_from(WebhookDelivery)) == 0
+        assert receiver.requests == []
+    finally:
+        receiver.close()
+
+
+@pytest.mark.parametrize("client", [SLOW_RETRIES], indirect=True)
 @pytest.mark.parametrize(("status", "retry_after", "waited"), [
     (429, "30", 30), (503, "in 45 s", 45), (503, "7200", 60), (429, "1", 5)])
 def test_a_receivers_retry_after_is_waited_before_its_delivery_is_tried_again(client, status, retry_after, waited):

@@ -221,7 +221,8 @@ def list_reconstructions(*, session: Session, key: ApiKey, scene_id: str) -> lis
 def delete_scene(*, session: Session, storage: Storage, key: ApiKey, scene_id: str) -> None:
     """Delete the scene with its jobs, reconstructions and stored objects; 409 while a job is queued or running.
 
-    A processing scene can be deleted too: its ingest finds it gone and keeps nothing.
+    A processing scene can be deleted too: its ingest finds it gone and keeps nothing. The jobs' webhook deliveries go
+    with them, those pending never sent (as the README says: their job, its URLs and their state are gone).
     """
     scene = get_scene(session=session, key=key, scene_id=scene_id)
     # Locked before counting, as creating a job locks it after writing its row (add_jobs): a job created meanwhile
