@@ -212,6 +212,19 @@ def test_a_delivery_failing_for_its_whole_window_is_retried_until_its_end(client
 
 
 @pytest.mark.parametrize("client", [SLOW_RETRIES], indirect=True)
+def test_the_readmes_deliveries_row_names_each_field_a_delivery_has(client):
+    """The README's row of ``GET /v1/jobs/{id}/webhooks`` had called ``event_type`` "event" and named neither the
+    url nor the times: each field a delivery is answered with is named there as the API spells it."""
+    from pathlib import Path
+
+    test_client, scene = client
+    delivery = failed_once_more(test_client, scene)
+    row = next(line for line in (Path(__file__).parent.parent / "README.md").read_text().splitlines()
+               if line.startswith("| `GET /v1/jobs/{id}/webhooks`"))
+    assert [field for field in delivery if f"`{field}`" not in row] == []
+
+
+@pytest.mark.parametrize("client", [SLOW_RETRIES], indirect=True)
 def test_a_delivery_past_a_thousand_attempts_is_still_recorded(client):
     """Attempt 1,025 (a delivery retried a minute apart for a week gets there in 17 h): its backoff's 2 ** 1024 had
     overflowed the float, so the failure was never recorded and the delivery, left pending, was tried every lease
