@@ -316,24 +316,24 @@ class JobCreate(Strict):
     @model_validator(mode="after")
     def _edit_words(self):
         check_prompt_length(self.prompt, self.params.view_words)  # a longer one was cut off at the text encoder
+        if broken := presets.broken_job_option_rule(self.mode, self.edit_words, self.webhook_url, self.webhook_events):
+            raise ValueError(JOB_OPTION_RULES[broken])
         if self.mode == "local":
-            if not self.edit_words:
-                raise ValueError("edit_words is required for a local edit: the word(s) of the prompt naming the edit")
             # Words as the model splits them, in NFC: "dog" in "a dog's hat", "sunglasses" in "sunglasses-wearing"
             # and a decomposed "café" in a composed one had been refused as "not in the prompt".
             check_edit_words_name_an_edit(self.prompt, self.edit_words)
             # As the refinement's attention model will look for them, after the edit: "hat." or "hat!" had passed
             # the whole-word match above and failed the job there.
             check_edit_words_read(self.prompt, self.edit_words, self.params.view_words)
-        elif self.edit_words:
-            raise ValueError("edit_words apply to local edits only (mode 'local')")
         return self
 
-    @model_validator(mode="after")
-    def _events_need_a_url(self):
-        if self.webhook_events is not None and self.webhook_url is None:
-            raise ValueError("webhook_events needs a webhook_url to send them to")
-        return self
+
+JOB_OPTION_RULES = {
+    "edit_words_required": "edit_words is required for a local edit: the word(s) of the prompt naming the edit",
+    "edit_words_local_only": "edit_words apply to local edits only (mode 'local')",
+    "webhook_events_need_url": "webhook_events needs a webhook_url to send them to",
+}
+"""``presets.JOB_OPTION_RULES`` as ``POST /v1/jobs`` says them (its fields')."""
 
 
 # ------------------------------------------------------------------ evaluation (SPEC §4)

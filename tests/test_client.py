@@ -6,6 +6,7 @@ The calls against a real service are in tests/test_evaluate.py (``voxe sweep`` e
 
 from __future__ import annotations
 
+import argparse
 import functools
 import itertools
 import json
@@ -3085,6 +3086,36 @@ def test_a_submit_whose_job_options_the_service_refuses_uploads_nothing(options,
     assert main(["submit", "a dog wearing a hat", "--upload", str(tmp_path / "plane.obj"), *options,
                  "--api", "http://127.0.0.1:9"]) == 2  # (no service there: an upload tried is exit 3)
     assert capsys.readouterr().err == f"voxe submit: error: {said}; nothing uploaded\n"
+
+
+def test_submit_and_the_service_refuse_job_options_by_one_set_of_rules():
+    """``voxe submit --upload``'s checks before the upload had restated three rules of ``POST /v1/jobs`` in their own
+    code, free to drift from the service's: both now read ``presets.broken_job_option_rule``, each saying every rule
+    in its own words. Over every mix of the fields, the CLI refuses exactly what the service refuses, for the same
+    rule."""
+    from pydantic import ValidationError
+
+    from api import schemas
+    from voxe_core import presets
+    from voxe_core.cli import service
+
+    assert set(schemas.JOB_OPTION_RULES) == set(service.JOB_OPTION_RULES) == set(presets.JOB_OPTION_RULES)
+    refused = set()
+    for mode, words, url, events in itertools.product(("global", "local"), ([], ["hat"]),
+                                                      (None, "https://example.com/hook"), (None, ["warning"])):
+        args = argparse.Namespace(mode=mode, edit_word=words, webhook_url=url, webhook_event=events)
+        try:
+            schemas.JobCreate(scene_id="s", prompt="a dog wearing a hat", mode=mode, edit_words=words,
+                              webhook_url=url, webhook_events=events)
+        except ValidationError as exc:
+            rule = next(r for r, said in schemas.JOB_OPTION_RULES.items() if said in str(exc))
+            with pytest.raises(ValueError) as cli:
+                service._check_job_options(args)
+            assert str(cli.value) == f"{service.JOB_OPTION_RULES[rule]}; nothing uploaded"
+            refused.add(rule)
+        else:
+            service._check_job_options(args)
+    assert refused == set(presets.JOB_OPTION_RULES)
 
 
 @pytest.mark.parametrize("job_status, delete_status, said, exit_status", [

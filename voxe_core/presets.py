@@ -66,6 +66,8 @@ PREVIEW_EVERY = 100
 EDIT_MODES = ("global", "local")
 """A job's edit: of the whole grid, or refined to its edit words' region (SPEC §3)."""
 EDIT_MODE = EDIT_MODES[0]
+JOB_OPTION_RULES = ("edit_words_required", "edit_words_local_only", "webhook_events_need_url")
+"""The rules of a job's fields that no scene or parameter changes, each named: ``broken_job_option_rule``."""
 BATCH_SIZE = 1
 """Poses (renders) per edit iteration."""
 VIEW_WORDS = True
@@ -79,6 +81,19 @@ MAX_SEED = paper.MAX_SEED
 MESH_VIEWS, MESH_VIEW_SIZE = 100, 256
 """Renders of a mesh for route (a) (the paper: 100 upper-hemisphere views): the service stores them at 256 px and
 its fit loads them at 1 / ``DOWNSAMPLE``; ``voxe mesh-to-grid --route render`` renders at that size."""
+
+
+def broken_job_option_rule(mode: str, edit_words, webhook_url, webhook_events) -> str | None:
+    """The first of ``JOB_OPTION_RULES`` that a job's fields break, or None. ``POST /v1/jobs`` and ``voxe submit
+    --upload`` (before it uploads) both read it, each saying the rule in its own words (fields, options), so the
+    two cannot drift apart."""
+    if mode == "local" and not edit_words:
+        return "edit_words_required"
+    if mode != "local" and edit_words:
+        return "edit_words_local_only"
+    if webhook_events is not None and webhook_url is None:
+        return "webhook_events_need_url"
+    return None
 
 
 @dataclass(frozen=True)

@@ -21,7 +21,7 @@ from voxe_core.cli.common import (
     EXIT_FAILED, EXIT_INTERRUPTED, EXIT_SERVICE_FAILED, EXIT_USAGE, LOG_PROGRESS_INTERVAL_S, Interrupt,
     non_negative_seconds, positive_seconds, writable_file, writable_folder, write_json,
 )
-from voxe_core.presets import EDIT_MODE, EDIT_MODES
+from voxe_core.presets import EDIT_MODE, EDIT_MODES, broken_job_option_rule
 
 
 def _scene_object(text: str) -> dict:
@@ -310,13 +310,18 @@ def cmd_submit(args) -> int:
 def _check_job_options(args) -> None:
     """ValueError for options the service refuses in any job (``POST /v1/jobs``' rules), said before ``--upload``
     sends the scene: ``voxe submit P --upload big.zip --mode local`` (no --edit-word) had been refused once the whole
-    upload was stored, the scene then deleted again, to be uploaded once more with the option fixed."""
-    if args.mode == "local" and not args.edit_word:
-        raise ValueError("--mode local needs --edit-word: the word(s) of the prompt naming the edit; nothing uploaded")
-    if args.mode != "local" and args.edit_word:
-        raise ValueError("--edit-word applies to local edits only (--mode local); nothing uploaded")
-    if args.webhook_event is not None and args.webhook_url is None:
-        raise ValueError("--webhook-event needs a --webhook-url to send the events to; nothing uploaded")
+    upload was stored, the scene then deleted again, to be uploaded once more with the option fixed. The rules are
+    the service's own (``presets.broken_job_option_rule``), said by their options."""
+    if broken := broken_job_option_rule(args.mode, args.edit_word, args.webhook_url, args.webhook_event):
+        raise ValueError(f"{JOB_OPTION_RULES[broken]}; nothing uploaded")
+
+
+JOB_OPTION_RULES = {
+    "edit_words_required": "--mode local needs --edit-word: the word(s) of the prompt naming the edit",
+    "edit_words_local_only": "--edit-word applies to local edits only (--mode local)",
+    "webhook_events_need_url": "--webhook-event needs a --webhook-url to send the events to",
+}
+"""``presets.JOB_OPTION_RULES`` as ``voxe submit`` says them (its options')."""
 
 
 def _service_error(command: str, error) -> int:
