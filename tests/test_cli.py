@@ -2113,6 +2113,29 @@ def test_render_into_an_earlier_output_leaves_only_this_runs_views(sphere_file, 
     assert (out / "notes.txt").exists() and (out / "cover.png").exists() and (out / "001.png").exists()
 
 
+def test_render_removes_the_files_of_the_manifest_it_checked_not_of_one_written_during_its_render(
+        sphere_file, tmp_path, monkeypatch):
+    """voxe render read --out's manifest twice: to check --out before the render, and again after it to remove the
+    earlier run's files. A manifest written meanwhile (another run into the same --out) had its files removed,
+    unchecked: the listing checked is the one whose files go."""
+    import voxe_core.cli.render as render
+
+    out = tmp_path / "views"
+    ring = ["render", str(sphere_file), "--size", "16", "--out", str(out), "--quiet", "--ring"]
+    assert main(ring + ["2"]) == 0
+    rendering = render._render_into
+
+    def another_run_meanwhile(*args, **kwargs):
+        (out / "other.png").write_text("another run's")
+        (out / "render.json").write_text(json.dumps({"written_by": "voxe render", "files": ["other.png"]}))
+        return rendering(*args, **kwargs)
+
+    monkeypatch.setattr(render, "_render_into", another_run_meanwhile)
+    assert main(ring + ["1"]) == 0
+    assert sorted(os.listdir(out)) == ["000.png", "other.png", "render.json"]  # 001.png, checked, gone
+    assert json.loads((out / "render.json").read_text()) == {"written_by": "voxe render", "files": ["000.png"]}
+
+
 def test_render_refuses_to_write_over_files_no_earlier_run_wrote(sphere_file, tmp_path, capsys):
     """A user's own render.json, metrics.json or view-named file in --out had been overwritten by the run (the
     help says files no run listed stay): the run is refused before rendering, naming the file, which stays."""

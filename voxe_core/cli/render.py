@@ -117,7 +117,7 @@ def cmd_render(args) -> int:
     outputs = names + ([METRICS_FILE] if scene is not None else [])
     for name in outputs:  # (a folder in the way had failed the move, after the whole render)
         writable_file(args.out / name)
-    _refuse_files_not_its_own(args.out, outputs)
+    earlier = _refuse_files_not_its_own(args.out, outputs)
     # Each view saved as it is rendered (all had been held first)
     with staging_folder(args.out, "render") as staging:
         scores = run_stage(lambda cb: _render_into(staging, grid, cameras, names, scene, cb, device), "render",
@@ -125,7 +125,7 @@ def cmd_render(args) -> int:
         if scores is None:
             print("voxe: rendering cancelled, nothing written", file=sys.stderr)
             return EXIT_INTERRUPTED
-        _replace_manifest(args.out, outputs)
+        _replace_manifest(args.out, earlier, outputs)
         for name in names:
             os.replace(staging / name, args.out / name)
     print(f"wrote {len(names)} views to {args.out}")
@@ -165,10 +165,10 @@ def _earlier_files(out_dir: Path) -> list | None:
         return None
 
 
-def _refuse_files_not_its_own(out_dir: Path, files: list[str]) -> None:
+def _refuse_files_not_its_own(out_dir: Path, files: list[str]) -> list | None:
     """ValueError naming a file this run would write over that no earlier run wrote (a user's own render.json,
     metrics.json or 000.png in --out), before rendering: they had been overwritten, where --out's help says files
-    no run listed stay."""
+    no run listed stay. Else the files the earlier run listed (``_earlier_files``), for ``_replace_manifest``."""
     earlier = _earlier_files(out_dir)
     if earlier is None and os.path.lexists(out_dir / MANIFEST_FILE):
         raise ValueError(f"--out: {out_dir / MANIFEST_FILE} is not a manifest voxe render wrote, and a run writes "
@@ -178,14 +178,16 @@ def _refuse_files_not_its_own(out_dir: Path, files: list[str]) -> None:
             raise ValueError(f"--out: {out_dir / name} was not written by an earlier voxe render (its "
                              f"{MANIFEST_FILE} does not list it), and this run would write over it; move that file "
                              "or choose another --out")
+    return earlier
 
 
-def _replace_manifest(out_dir: Path, files: list[str]) -> None:
-    """Remove the files an earlier run listed in ``out_dir``'s manifest, then list ``files``, this run's (before it
-    writes them, so an interrupted run's are listed too). A re-run writing fewer views had left the earlier run's
-    beside them; files no run listed (the user's own, whatever their names) stay."""
+def _replace_manifest(out_dir: Path, earlier: list | None, files: list[str]) -> None:
+    """Remove the files an earlier run listed in ``out_dir``'s manifest (``earlier``: as read when --out was checked,
+    before the render; read again after it, the files of a manifest written meanwhile had gone, unchecked), then list
+    ``files``, this run's (before it writes them, so an interrupted run's are listed too). A re-run writing fewer views
+    had left the earlier run's beside them; files no run listed (the user's own, whatever their names) stay."""
     manifest = out_dir / MANIFEST_FILE
-    for name in _earlier_files(out_dir) or []:  # none, or not this command's: none removed
+    for name in earlier or []:  # none, or not this command's: none removed
         if isinstance(name, str) and Path(name).name == name and (out_dir / name).is_file():  # (only its own names)
             (out_dir / name).unlink()
     with replacing(manifest) as partial:
