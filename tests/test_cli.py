@@ -2092,6 +2092,36 @@ def test_ring_of_a_capture_grid_orbits_its_object_or_the_grid_named_by_centre_of
     assert f"{missing}: no such file" in capsys.readouterr().err and not (tmp_path / "t.gif").exists()
 
 
+def test_grids_named_in_another_encoding_than_utf8_are_read(sphere_file, tmp_path):
+    """A grid whose file name is no valid UTF-8 (é as Latin-1's byte 0xe9, a folder copied from an older system) was
+    written by voxe, but every command refused it: "not a readable safetensors file (Path ... is not valid UTF-8)",
+    safetensors' own refusal to open it, and ``voxe convert-grid --out`` such a name exited 2 with its output
+    written. Such a file reads as any other (under LC_ALL=C too: the commands are run as a shell runs them)."""
+    import torch
+
+    from voxe_core.backbones import load_grid
+
+    latin1 = tmp_path / os.fsdecode(b"caf\xe9")
+    try:
+        latin1.mkdir()
+    except (OSError, UnicodeEncodeError):
+        pytest.skip("the file system takes no name that is not UTF-8")
+    grid = latin1 / os.fsdecode(b"sph\xe8re.safetensors")
+    grid.write_bytes(sphere_file.read_bytes())
+    copy = latin1 / os.fsdecode(b"copie \xe9.safetensors")
+
+    def voxe(*args: str) -> None:
+        result = subprocess.run([sys.executable, "-m", "voxe_core.cli", *args], cwd=REPO, capture_output=True,
+                                timeout=300, env={**os.environ, "LC_ALL": "C", "LANG": "C"})
+        assert result.returncode == 0, result.stderr.decode(errors="replace")
+
+    voxe("convert-grid", str(grid), "--out", str(copy), "--dense")
+    assert main(["convert-grid", str(sphere_file), "--out", str(tmp_path / "utf8.safetensors"), "--dense"]) == 0
+    assert torch.equal(load_grid(copy).features, load_grid(tmp_path / "utf8.safetensors").features)
+    voxe("render", str(copy), "--ring", "1", "--size", "16", "--out", str(latin1 / "views"), "--quiet")
+    assert sorted(os.listdir(latin1 / "views")) == ["000.png", "render.json"]
+
+
 def test_render_into_an_earlier_output_leaves_only_this_runs_views(sphere_file, tmp_path):
     """A re-run into the same --out had left the earlier run's extra views beside its own: the files an earlier run
     listed in its manifest go; others stay, whatever their names (the user's own 1080.png or 123_scan.png too, which

@@ -119,6 +119,7 @@ from voxe_core.tensorio import (
     load_header,
     load_tensors,
     recipe_changes,
+    safetensors_name,
     save_tensors,
 )
 
@@ -452,7 +453,7 @@ def _recorded_views(path) -> torch.Tensor | None:
     from safetensors import SafetensorError, safe_open
 
     try:
-        with safe_open(str(path), framework="pt") as handle:
+        with safetensors_name(path) as name, safe_open(name, framework="pt") as handle:
             return handle.get_tensor("views") if "views" in handle.keys() else None
     except (SafetensorError, OSError, ValueError) as exc:
         raise FormatError(f"{path}: not a readable safetensors file ({exc})") from exc

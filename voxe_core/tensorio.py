@@ -11,7 +11,8 @@ import numbers
 import os
 import re
 import stat
-from collections.abc import Iterable
+from collections.abc import Iterable, Iterator
+from contextlib import contextmanager
 from dataclasses import asdict
 from pathlib import Path
 
@@ -28,6 +29,26 @@ OS_ERROR_NUMBER = re.compile(r"\(os error (\d+)\)")
 
 class FormatError(ValueError):
     """A tensor file that is not ours, is damaged, or is from a newer format version."""
+
+
+@contextmanager
+def safetensors_name(path: str | os.PathLike) -> Iterator[str]:
+    """The name safetensors reads ``path`` by while the block runs: its own, unless that is no valid UTF-8 (a file
+    named in another encoding, "\xe9.safetensors" for Latin-1's é), which safetensors refuses to open ("Path ... is
+    not valid UTF-8") though it writes it: then the file is opened here and read through its descriptor's name.
+    Such a grid had been written by ``voxe mesh-to-grid`` and then refused by every command as "not a readable
+    safetensors file" (``voxe convert-grid`` exiting 2 with its output written)."""
+    name = os.fspath(path)
+    try:
+        name.encode("utf-8")
+    except UnicodeEncodeError:
+        descriptor = os.open(name, os.O_RDONLY)
+        try:
+            yield f"/dev/fd/{descriptor}"
+        finally:
+            os.close(descriptor)
+        return
+    yield name
 
 
 def config_recipe(config, left_out: Iterable[str]) -> dict:
@@ -114,7 +135,8 @@ def load_tensors(path: str | os.PathLike, kind: str, max_version: int) -> tuple[
     """Read a file written by :func:`save_tensors`; returns (tensors, meta)."""
     meta = load_header(path, kind, max_version)
     try:
-        tensors = load_file(str(path))
+        with safetensors_name(path) as name:
+            tensors = load_file(name)
     except (SafetensorError, OSError, ValueError) as exc:
         raise FormatError(f"{path}: not a readable safetensors file ({exc})") from exc
     return tensors, meta
@@ -130,7 +152,7 @@ def load_header(path: str | os.PathLike, kind: str, max_version: int) -> dict:
     try:
         from safetensors import safe_open
 
-        with safe_open(str(path), framework="pt") as handle:
+        with safetensors_name(path) as name, safe_open(name, framework="pt") as handle:
             raw_header = (handle.metadata() or {}).get(HEADER_KEY)
     except (SafetensorError, OSError, ValueError) as exc:
         raise FormatError(f"{path}: not a readable safetensors file ({exc})") from exc
