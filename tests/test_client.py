@@ -2777,7 +2777,8 @@ def test_a_submit_refused_deletes_the_scene_it_uploaded_and_no_other(api, tmp_pa
 
     url, _ = api
     (tmp_path / "plane.obj").write_text(PLANE_OBJ)
-    bad = ["--params", '{"iterations": -1}', "--api", url]
+    # (refused for the scene's images, 32 px; params refused on any scene upload nothing)
+    bad = ["--params", '{"downsample": 64}', "--api", url]
     assert main(["submit", "a plane", "--upload", str(tmp_path / "plane.obj"), *bad]) == 2
     err = capsys.readouterr().err
     scene_id = err.split("scene ", 1)[1].split()[0]
@@ -2801,7 +2802,7 @@ def test_submit_and_sweep_run_again_with_their_idempotency_key_make_one(api, tmp
     (tmp_path / "plane.obj").write_text(PLANE_OBJ)
     submit = ["submit", "a plane of gold", "--upload", str(tmp_path / "plane.obj"), "--api", url,
               "--idempotency-key", "nightly-7"]
-    assert main([*submit, "--params", '{"iterations": -1}']) == 2
+    assert main([*submit, "--params", '{"downsample": 64}']) == 2  # (past the scene's images, 32 px)
     err = capsys.readouterr().err
     scene_id = err.split("scene ", 1)[1].split()[0]
     assert "HTTP 422" in err and err.endswith(f"the scene {scene_id} stays: a run with --idempotency-key 'nightly-7' "
@@ -3118,6 +3119,32 @@ def test_submit_and_the_service_refuse_job_options_by_one_set_of_rules():
     assert refused == set(presets.JOB_OPTION_RULES)
 
 
+@pytest.mark.parametrize("options, said", [
+    (["--params", '{"iterations": 10, "colour": 1}'], "body.params.colour: Extra inputs are not permitted"),
+    (["--params", '{"iterations": "10"}'], "body.params.iterations: Input should be a valid integer"),
+    (["--params", '{"refine": {"iterations": 2147483648}}'],
+     "body.params.refine.iterations: Input should be less than or equal to 100000"),
+    (["--webhook-url", "http://10.1.2.3/hook"], "webhook_url host '10.1.2.3' resolves to a private address")])
+def test_a_submit_whose_job_the_service_refuses_on_any_scene_uploads_nothing(options, said, api, tmp_path, capsys):
+    """``voxe submit P --upload big.zip --params '{"colour": 1}'`` (a field the service does not take, a value of
+    another type or past its bound; or a webhook URL it will not call) had uploaded the whole scene before the job
+    was refused (422) and the scene deleted again: the service checks the job first (``POST /v1/jobs?check=true``),
+    its 422 said as it names the field, nothing uploaded; a job it takes is made as before."""
+    from voxe_core.cli import main
+
+    url, _ = api
+    (tmp_path / "plane.obj").write_text(PLANE_OBJ)
+    upload = ["submit", "a plane", "--upload", str(tmp_path / "plane.obj"), "--api", url, "--quiet"]
+    assert main([*upload, *options]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"voxe submit: error: POST /v1/jobs: HTTP 422: {said}") and err.endswith("; nothing uploaded\n")
+    with Client(url) as client:
+        assert client.list_scenes()["total"] == 0 and client.list_jobs()["total"] == 0
+        assert main([*upload, "--params", '{"iterations": 10}']) == 0
+        job = client.get_job(capsys.readouterr().out.strip())
+        assert job["params"]["iterations"] == 10 and client.list_scenes()["total"] == 1
+
+
 @pytest.mark.parametrize("job_status, delete_status, said, exit_status", [
     (429, 204, "the scene s1 this command uploaded is deleted", 2),
     (429, 409, "the scene s1 this command uploaded stays, its deletion failed (DELETE /v1/scenes/s1: HTTP 409: busy)",
@@ -3140,6 +3167,8 @@ def test_a_submit_not_taken_says_what_became_of_the_scene_it_uploaded(job_status
         sent.append(f"{request.method} {request.url.path}")
         if request.method == "POST" and request.url.path == "/v1/scenes":
             return httpx.Response(201, json={"id": "s1", "state": "processing"})
+        if request.method == "POST" and request.url.params.get("check") == "true":
+            return httpx.Response(204)  # (checked before the upload, as the service does)
         if request.method == "POST":
             return httpx.Response(job_status, json={"detail": "not now"})
         return httpx.Response(delete_status, json={"detail": "busy"} if delete_status == 409 else None)
@@ -3149,7 +3178,7 @@ def test_a_submit_not_taken_says_what_became_of_the_scene_it_uploaded(job_status
     assert main(["submit", "a plane", "--upload", str(tmp_path / "plane.obj")]) == exit_status
     assert capsys.readouterr().err.endswith(f"HTTP {job_status}: not now; {said}\n")
     retried = client_module.DEFAULT_RETRIES if job_status == 503 else 0
-    assert sent == (["POST /v1/scenes"] + ["POST /v1/jobs"] * (1 + retried)
+    assert sent == (["POST /v1/jobs", "POST /v1/scenes"] + ["POST /v1/jobs"] * (1 + retried)
                     + ["DELETE /v1/scenes/s1"] * (delete_status is not None))
 
 

@@ -405,6 +405,17 @@ class Client:
         return self._record("job", "POST", "/v1/jobs", {"scene_id": scene_id, "prompt": prompt, **fields},
                             idempotency_key=_submission_key(idempotency_key))
 
+    def check_job(self, prompt: str, **fields) -> None:
+        """``POST /v1/jobs?check=true``: ServiceError (the 422 naming the field, as :meth:`create_job` would get) for
+        a job the service refuses on any scene, ``fields`` as :meth:`create_job`'s; nothing is made. Only that
+        refusal is raised: another answer (an older service that does not check, one failing) leaves the job to be
+        said by its creation."""
+        try:
+            self.request("POST", "/v1/jobs", {"scene_id": "-", "prompt": prompt, **fields}, params={"check": "true"})
+        except ServiceError as exc:
+            if exc.status == 422 and "unknown query parameter(s) 'check'" not in str(exc):
+                raise
+
     def get_job(self, job_id: str) -> dict:
         return self._record("job", "GET", f"/v1/jobs/{_segment(job_id)}")
 

@@ -113,6 +113,8 @@ def _models(job: Job) -> Models:
 
 @router.post("", status_code=status.HTTP_201_CREATED, response_model=JobOut,
              responses={200: replayed_answer(JobOut, "job"),
+                        204: {"description": "with check=true: the body and its webhook_url are a job's this endpoint "
+                                             "takes on some scene; nothing is made"},
                         401: {"description": "missing or invalid API key"},
                         404: {"description": "no such scene (or another key's)"},
                         409: {"description": "the scene failed processing (the reason is named), every worker "
@@ -130,9 +132,17 @@ def _models(job: Job) -> Models:
                                              "resolver (Retry-After)"}},
              summary="Create an edit job (queued at once; optionally with an Idempotency-Key header)")
 def create_job(body: JobCreate, response: Response, session: SessionDep, settings: SettingsDep, queue: QueueDep,
-               key: CurrentKey, idempotency_key: IdempotencyKey, root: RootPath) -> JobOut:
+               key: CurrentKey, idempotency_key: IdempotencyKey, root: RootPath,
+               check: Annotated[bool, Query(description="only check the body and its webhook_url (204, or the 422 "
+                                                        "its creation would answer), its scene_id not looked up: "
+                                                        "what voxe submit --upload asks before it uploads")] = False,
+               ) -> JobOut | Response:
     """201 with the queued job (on a scene still processing, it starts once the scene is ready); 200 with the
-    original one for a retry carrying the same Idempotency-Key."""
+    original one for a retry carrying the same Idempotency-Key; with ``check``, 204 where what does not depend on the
+    scene is one it takes (the body was read by the time it gets here)."""
+    if check:
+        jobs.check_webhook(settings=settings, body=body)
+        return Response(status_code=status.HTTP_204_NO_CONTENT)
     job, replayed = jobs.create_job(session=session, settings=settings, queue=queue, key=key, body=body,
                                     idempotency_key=idempotency_key)
     if replayed:

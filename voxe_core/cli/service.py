@@ -272,10 +272,18 @@ def cmd_submit(args) -> int:
         raise ValueError("--reconnect-for sets how long --wait rides out a lost event stream: pass --wait too")
     if args.upload is not None:
         _check_job_options(args)
+    fields = {"mode": args.mode, "edit_words": args.edit_word}
+    fields.update({k: v for k, v in (("params", args.params), ("webhook_url", args.webhook_url),
+                                     ("webhook_events", args.webhook_event))
+                   if v is not None})  # (an empty --webhook-url "$UNSET" had been dropped, the job made)
     with _client(args) as client:
         try:
             scene_id = args.scene
             if args.upload is not None:
+                try:  # (a bad --params had been refused once the whole upload was stored, the scene deleted again)
+                    client.check_job(args.prompt, **fields)
+                except ServiceError as exc:
+                    raise type(exc)(f"{exc}; nothing uploaded", exc.status, exc.detail) from None
                 with warnings.catch_warnings(record=True) as left_out:  # a mesh's .mtl or texture not found
                     warnings.simplefilter("always", MissingCompanionWarning)
                     scene_id = client.upload_scene(args.upload, name=args.scene_name, texture=args.texture,
@@ -287,10 +295,6 @@ def cmd_submit(args) -> int:
                     else:  # as it would have been shown
                         warnings.showwarning(warning.message, warning.category, warning.filename, warning.lineno)
                 print(f"uploaded {args.upload}: scene {scene_id}", file=sys.stderr)
-            fields = {"mode": args.mode, "edit_words": args.edit_word}
-            fields.update({k: v for k, v in (("params", args.params), ("webhook_url", args.webhook_url),
-                                             ("webhook_events", args.webhook_event))
-                           if v is not None})  # (an empty --webhook-url "$UNSET" had been dropped, the job made)
             try:
                 job = client.create_job(scene_id, args.prompt, idempotency_key=args.idempotency_key, **fields)
             except ServiceError as exc:
