@@ -409,7 +409,8 @@ class SweepOut(BaseModel):
     entries: list[SweepEntry]
     rows: list[dict] = Field(description="one per evaluated edit: scene, object, prompt, mode and the metrics")
     means: dict = Field(description="metric means over the local edits, the global ones and all")
-    table: str = Field(description="the rows and means as a Markdown table")
+    table: str = Field(description="the rows and means as a Markdown table, below a line \"**SMOKE TEST**: ...\" "
+                                   "where the evaluations scored with the random-weight smoke-test models")
 
 
 # ------------------------------------------------------------------ responses

@@ -1158,6 +1158,35 @@ def test_a_sweep_summarises_while_an_evaluation_runs_and_after_one_failed(servic
     assert failed.status_code == 200 and failed.json()["rows"] == [] and failed.json()["counts"]["failed"] == 1
 
 
+def test_the_smoke_test_models_scores_are_labelled_as_such_in_every_table_and_summary(service, sphere_grid):
+    """With VOXE_CLIP_MODEL=tiny and VOXE_FID_MODEL=tiny the job record said so, but evaluation.md, evaluation.json
+    (clip_model 'tiny') and the sweep's table (what voxe sweep --wait prints) read as CLIP and FID scores."""
+    from voxe_service.settings import smoke_test_note
+    from worker import tasks
+
+    client, scene_id, root = service
+    params = {"iterations": 2, "reconstruction": {"resolution": 8, "iterations": 1}}
+    sweep = client.post("/v1/sweeps", json={"scenes": [{"scene_id": scene_id, "object": "mic"}], "params": params,
+                                            "evaluation": RING}).json()
+    entry = sweep["entries"][4]
+    _as_if_edited(entry["edit_job_id"], sphere_grid, sphere_grid, None, root)
+    assert tasks.evaluate_task.apply(args=(entry["evaluation_job_id"],)).get()["state"] == "done"
+    note = ("**SMOKE TEST**: CLIP and FID are tiny (smoke test, random weights): these numbers prove the plumbing "
+            "only and say nothing about the edits' quality.\n\n| job_id | prompt |")
+    job = client.get(f"/v1/jobs/{entry['evaluation_job_id']}").json()
+    table = client.get(f"/v1/jobs/{job['id']}/artifacts/evaluation.md").text
+    summary = json.loads(client.get(f"/v1/jobs/{job['id']}/artifacts/evaluation.json").content)
+    assert table.startswith(note) and job["result"]["table"] == summary["table"] == table
+    assert (summary["clip_model"], summary["fid_model"]) == ("tiny (smoke test, random weights)",) * 2
+    assert job["result"]["clip_model"] == summary["clip_model"]
+    swept = client.get(f"/v1/sweeps/{sweep['id']}").json()
+    assert swept["table"].startswith(note.replace("job_id", "object")) and len(swept["rows"]) == 1
+    # Only the smoke-test model is labelled: the real ones' tables start with the table itself
+    assert smoke_test_note({"clip_model": "openai/clip-vit-base-patch32", "fid_model": ""}) == ""
+    assert smoke_test_note({"clip_model": "openai/clip-vit-base-patch32", "fid_model": "tiny"}).startswith(
+        "**SMOKE TEST**: FID is tiny")
+
+
 def test_cli_sweep_submits_to_the_service_and_prints_the_sweep_id(service, tmp_path, capsys):
     from service_helpers import api_in_thread
     from voxe_core.cli import main

@@ -450,6 +450,18 @@ def model_label(model: str) -> str:
     return TINY_MODEL_LABEL if model == TINY_MODEL else model
 
 
+def smoke_test_note(*params: dict) -> str:
+    """The Markdown line set above the table of evaluations whose ``params`` (their ``clip_model`` / ``fid_model``
+    settings) name the smoke-test model, "" where none does: the table is read and passed on without the jobs that
+    made it (evaluation.md, a sweep's table), and its numbers had passed for CLIP and FID scores."""
+    tiny = [role for role, setting in (("CLIP", "clip_model"), ("FID", "fid_model"))
+            if any(p.get(setting) == TINY_MODEL for p in params)]
+    if not tiny:
+        return ""
+    return (f"**SMOKE TEST**: {' and '.join(tiny)} {'is' if len(tiny) == 1 else 'are'} {TINY_MODEL_LABEL}: these "
+            "numbers prove the plumbing only and say nothing about the edits' quality.\n\n")
+
+
 class SettingsError(ValueError):
     """Environment variables the service cannot start with, each named as it is set."""
 
