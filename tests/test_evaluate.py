@@ -875,6 +875,33 @@ def test_cli_evaluate_that_cannot_write_its_results_keeps_the_earlier_ones(spher
     assert sorted(p.name for p in out.iterdir()) == ["evaluation.json", "evaluation.md", "ring"]
 
 
+def test_cli_evaluate_with_the_smoke_test_models_says_so_in_its_table_and_summary(sphere_grid, tiny_clip_path,
+                                                                                  tiny_inception_path, tmp_path, capsys):
+    """voxe evaluate with the models voxe_core.tiny_eval builds (what its error for --clip-model tiny tells to build)
+    printed and wrote a table that read as CLIP and FID scores; the models' mark says what they are, whatever their
+    folder is called, and a model without it (a real CLIP) is scored with no note."""
+    from voxe_core.cli import main
+    from voxe_core.constants import SMOKE_TEST_MARK
+
+    sphere_grid.save(tmp_path / "initial.safetensors")
+    unmarked = shutil.copytree(tiny_clip_path, tmp_path / "clip")
+    config = json.loads((unmarked / "config.json").read_text())
+    assert config.pop(SMOKE_TEST_MARK) is True
+    (unmarked / "config.json").write_text(json.dumps(config))
+    args = ["evaluate", str(tmp_path / "initial.safetensors"), "--object", "ball", "--views", "2", "--size", "16", "-q",
+            "--edit", str(tmp_path / "initial.safetensors"), "a wood carving of a ball"]
+    assert main([*args, "--out", str(tmp_path / "tiny"), "--clip-model", str(tiny_clip_path),
+                 "--inception", str(tiny_inception_path)]) == 0
+    table = (tmp_path / "tiny" / "evaluation.md").read_text()
+    assert table.startswith("**SMOKE TEST**: CLIP and FID are random-weight smoke-test models: these numbers prove "
+                            "the plumbing only and say nothing about the edits' quality.\n\n| name | prompt |")
+    assert table in capsys.readouterr().out
+    assert json.loads((tmp_path / "tiny" / "evaluation.json").read_text())["smoke_test"] == ["CLIP", "FID"]
+    assert main([*args, "--out", str(tmp_path / "real"), "--clip-model", str(unmarked)]) == 0
+    assert (tmp_path / "real" / "evaluation.md").read_text().startswith("| name | prompt |")
+    assert json.loads((tmp_path / "real" / "evaluation.json").read_text())["smoke_test"] == []
+
+
 # ------------------------------------------------------------------------------------------ service
 @pytest.fixture
 def service(tmp_path, monkeypatch):
@@ -1161,7 +1188,7 @@ def test_a_sweep_summarises_while_an_evaluation_runs_and_after_one_failed(servic
 def test_the_smoke_test_models_scores_are_labelled_as_such_in_every_table_and_summary(service, sphere_grid):
     """With VOXE_CLIP_MODEL=tiny and VOXE_FID_MODEL=tiny the job record said so, but evaluation.md, evaluation.json
     (clip_model 'tiny') and the sweep's table (what voxe sweep --wait prints) read as CLIP and FID scores."""
-    from voxe_service.settings import smoke_test_note
+    from voxe_service.settings import smoke_test_roles
     from worker import tasks
 
     client, scene_id, root = service
@@ -1171,20 +1198,19 @@ def test_the_smoke_test_models_scores_are_labelled_as_such_in_every_table_and_su
     entry = sweep["entries"][4]
     _as_if_edited(entry["edit_job_id"], sphere_grid, sphere_grid, None, root)
     assert tasks.evaluate_task.apply(args=(entry["evaluation_job_id"],)).get()["state"] == "done"
-    note = ("**SMOKE TEST**: CLIP and FID are tiny (smoke test, random weights): these numbers prove the plumbing "
-            "only and say nothing about the edits' quality.\n\n| job_id | prompt |")
+    note = ("**SMOKE TEST**: CLIP and FID are random-weight smoke-test models: these numbers prove the plumbing only "
+            "and say nothing about the edits' quality.\n\n| job_id | prompt |")
     job = client.get(f"/v1/jobs/{entry['evaluation_job_id']}").json()
     table = client.get(f"/v1/jobs/{job['id']}/artifacts/evaluation.md").text
     summary = json.loads(client.get(f"/v1/jobs/{job['id']}/artifacts/evaluation.json").content)
     assert table.startswith(note) and job["result"]["table"] == summary["table"] == table
     assert (summary["clip_model"], summary["fid_model"]) == ("tiny (smoke test, random weights)",) * 2
-    assert job["result"]["clip_model"] == summary["clip_model"]
+    assert job["result"]["clip_model"] == summary["clip_model"] and summary["smoke_test"] == ["CLIP", "FID"]
     swept = client.get(f"/v1/sweeps/{sweep['id']}").json()
     assert swept["table"].startswith(note.replace("job_id", "object")) and len(swept["rows"]) == 1
-    # Only the smoke-test model is labelled: the real ones' tables start with the table itself
-    assert smoke_test_note({"clip_model": "openai/clip-vit-base-patch32", "fid_model": ""}) == ""
-    assert smoke_test_note({"clip_model": "openai/clip-vit-base-patch32", "fid_model": "tiny"}).startswith(
-        "**SMOKE TEST**: FID is tiny")
+    # Only the smoke-test model is named, as the settings say (a tiny model built before its mark is labelled too)
+    assert smoke_test_roles({"clip_model": "openai/clip-vit-base-patch32", "fid_model": ""}) == []
+    assert smoke_test_roles({"clip_model": "openai/clip-vit-base-patch32", "fid_model": "tiny"}) == ["FID"]
 
 
 def test_cli_sweep_submits_to_the_service_and_prints_the_sweep_id(service, tmp_path, capsys):

@@ -163,6 +163,11 @@ TINY_MODEL = "tiny"
 """The name the service's model settings (``VOXE_SDS_MODEL``, ``VOXE_CLIP_MODEL``, ...) give the random-weight
 smoke-test models it builds in code: no hub id, and no folder the CLI reads (it had advised ``hf download tiny``)."""
 
+SMOKE_TEST_MARK = "voxe_smoke_test"
+"""True in the config of ``voxe_core.tiny_eval``'s CLIP and on its Inception module: what tells an evaluation scoring
+with them, whatever their folder or file is called, that its numbers are a smoke test's
+(``voxe_core.evaluate.smoke_test_roles``)."""
+
 # ------------------------------------------------------------------ evaluation (SPEC §4)
 EVALUATION_RING_VIEWS = 100
 """Poses evenly on the 360° ring the edits are scored on (the paper's 100)."""

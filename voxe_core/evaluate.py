@@ -41,7 +41,7 @@ import torch
 
 from voxe_core.constants import (
     CLIP_MODEL_ID, EVALUATION_RING_ELEVATION, EVALUATION_RING_SIZE, EVALUATION_RING_VIEWS, INCEPTION_FILE,
-    MAX_EVALUATION_RING_VIEWS, MAX_RENDER_SIZE, TINY_MODEL, inception_path,
+    MAX_EVALUATION_RING_VIEWS, MAX_RENDER_SIZE, SMOKE_TEST_MARK, TINY_MODEL, inception_path,
 )
 from voxe_core.devices import PeakMemory, full_precision, resolve_device
 from voxe_core.export import iter_views, render_views, to_uint8, turntable_cameras
@@ -743,8 +743,19 @@ def mean_by_mode(rows: Sequence[dict]) -> dict:
     return out
 
 
-def format_table(rows: Sequence[dict], extra_columns: Sequence[str] = ()) -> str:
-    """A Markdown table: one line per row, then the local / global / all means."""
+def smoke_test_roles(clip: ClipScorer, fid: FeatureExtractor | None = None) -> list[str]:
+    """Which of the scorers ("CLIP", "FID") are :mod:`voxe_core.tiny_eval`'s random-weight smoke-test models (their
+    mark, :data:`~voxe_core.constants.SMOKE_TEST_MARK`, whatever their folder or file is called)."""
+    return [role for role, marked in (("CLIP", getattr(clip.model.config, SMOKE_TEST_MARK, False)),
+                                      ("FID", getattr(getattr(fid, "module", None), SMOKE_TEST_MARK, False)))
+            if marked is True]
+
+
+def format_table(rows: Sequence[dict], extra_columns: Sequence[str] = (), smoke_test: Sequence[str] = ()) -> str:
+    """A Markdown table: one line per row, then the local / global / all means.
+
+    ``smoke_test``: the scorers ("CLIP", "FID") that were the random-weight smoke-test models, said on a line above
+    the table (which is read and passed on without what made it: its numbers had passed for CLIP and FID scores)."""
     columns = [*extra_columns, "prompt", "mode", *METRICS]
 
     def cell(value) -> str:
@@ -755,6 +766,10 @@ def format_table(rows: Sequence[dict], extra_columns: Sequence[str] = ()) -> str
         return " ".join(str(value).split()).replace("|", "\\|")  # a line break would end the row
 
     lines = ["| " + " | ".join(columns) + " |", "|" + "---|" * len(columns)]
+    if smoke_test:
+        what = "is a random-weight smoke-test model" if len(smoke_test) == 1 else "are random-weight smoke-test models"
+        lines[:0] = [f"**SMOKE TEST**: {' and '.join(smoke_test)} {what}: these numbers prove the plumbing only and say "
+                     "nothing about the edits' quality.", ""]
     lines += ["| " + " | ".join(cell(row.get(c)) for c in columns) + " |" for row in rows]
     for mode, means in mean_by_mode(rows).items():
         label = {c: "" for c in extra_columns} | {"prompt": f"**mean ({means['count']})**", "mode": mode}
@@ -768,5 +783,5 @@ __all__ = [
     "ProtocolEdit", "check_source_text_length", "clip_direction", "clip_similarity", "evaluate", "evaluation_steps",
     "feature_statistics",
     "fid_from_features", "format_table", "frechet_distance", "iter_mask_footprint", "mask_footprint", "mean_by_mode",
-    "paper_protocol", "Preservation", "preservation", "render_ring", "source_text", "ViewBatches",
+    "paper_protocol", "Preservation", "preservation", "render_ring", "smoke_test_roles", "source_text", "ViewBatches",
 ]

@@ -12,6 +12,7 @@ with them are not CLIP or FID scores.
   with 32 px images, 8 px patches, hidden size 32, 2 layers, projection 32; the
   tokenizer is the one of :mod:`voxe_core.tiny_sd` (whole-word tokens for the
   project's prompts, byte fallback for anything else).
+* Both are marked (:data:`SMOKE_TEST_MARK`), so an evaluation scoring with them says so in its table.
 * :func:`build_tiny_inception` writes a TorchScript file with the calling
   convention of ``inception-2015-12-05.pt``:
   ``model(uint8 images (N, 3, H, W), return_features=True)`` -> (N, 64) pool
@@ -28,6 +29,7 @@ from pathlib import Path
 import torch
 import torch.nn.functional as F
 
+from voxe_core.constants import SMOKE_TEST_MARK
 from voxe_core.tiny_sd import _BOS, _EOS, _MAX_LENGTH, TINY_VOCAB_WORDS, _write_tokenizer
 
 TINY_CLIP_IMAGE_SIZE = 32
@@ -50,7 +52,7 @@ def build_tiny_clip(path, seed: int = 0) -> Path:
             "image_size": TINY_CLIP_IMAGE_SIZE, "patch_size": 8, "hidden_size": 32, "intermediate_size": 64,
             "num_hidden_layers": 2, "num_attention_heads": 4, "hidden_act": "quick_gelu",
         },
-        projection_dim=32,
+        projection_dim=32, **{SMOKE_TEST_MARK: True},
     )
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(seed)
@@ -74,6 +76,7 @@ class _TinyInception(torch.nn.Module):
 
     def __init__(self):
         super().__init__()
+        setattr(self, SMOKE_TEST_MARK, True)  # kept in the TorchScript file
         self.conv1 = torch.nn.Conv2d(3, 16, 3, stride=2, padding=1)
         self.conv2 = torch.nn.Conv2d(16, 32, 3, stride=2, padding=1)
         self.conv3 = torch.nn.Conv2d(32, TINY_INCEPTION_FEATURES, 3, stride=2, padding=1)

@@ -450,16 +450,13 @@ def model_label(model: str) -> str:
     return TINY_MODEL_LABEL if model == TINY_MODEL else model
 
 
-def smoke_test_note(*params: dict) -> str:
-    """The Markdown line set above the table of evaluations whose ``params`` (their ``clip_model`` / ``fid_model``
-    settings) name the smoke-test model, "" where none does: the table is read and passed on without the jobs that
-    made it (evaluation.md, a sweep's table), and its numbers had passed for CLIP and FID scores."""
-    tiny = [role for role, setting in (("CLIP", "clip_model"), ("FID", "fid_model"))
+def smoke_test_roles(*params: dict) -> list[str]:
+    """The scorers ("CLIP", "FID") that evaluations of ``params`` (their ``clip_model`` / ``fid_model`` settings) ran
+    as the smoke-test model, for their table to say so (``voxe_core.evaluate.format_table``'s ``smoke_test``): read
+    from the settings, as the job records label them, not from the models' marks (a model built before them has
+    none)."""
+    return [role for role, setting in (("CLIP", "clip_model"), ("FID", "fid_model"))
             if any(p.get(setting) == TINY_MODEL for p in params)]
-    if not tiny:
-        return ""
-    return (f"**SMOKE TEST**: {' and '.join(tiny)} {'is' if len(tiny) == 1 else 'are'} {TINY_MODEL_LABEL}: these "
-            "numbers prove the plumbing only and say nothing about the edits' quality.\n\n")
 
 
 class SettingsError(ValueError):

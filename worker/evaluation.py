@@ -17,7 +17,7 @@ from pathlib import Path
 
 from voxe_service.model_inventory import submission_note
 from voxe_service.models import SUCCEEDED, Job
-from voxe_service.settings import TINY_MODEL, Settings, model_label, smoke_test_note
+from voxe_service.settings import TINY_MODEL, Settings, model_label, smoke_test_roles
 from voxe_service.storage import StoredObject
 from worker import runtime
 from worker.inputs import fetch_grid, load_images, recorded_initial_grid
@@ -145,9 +145,10 @@ def run_evaluation(job: Job, settings: Settings, device: str, storage) -> None:
                       device=device, on_ring=save_ring if params.get("save_renders", True) else None)
     for row, source in zip(result.rows, sources):  # rows are named by their source job's id
         row.update(job_id=row.pop("name"), scene_id=source.scene_id, object=params["object"])
-    table = smoke_test_note(params) + format_table(result.rows, extra_columns=("job_id",))
+    smoke_test = smoke_test_roles(params)
+    table = format_table(result.rows, extra_columns=("job_id",), smoke_test=smoke_test)
     summary = {**result.summary(), "object": params["object"], "clip_model": model_label(params["clip_model"]),
-               "fid_model": model_label(params["fid_model"]), "reconstruction_id": rec.id,
+               "fid_model": model_label(params["fid_model"]), "smoke_test": smoke_test, "reconstruction_id": rec.id,
                "ring": {"views": config.views, "elevation": config.elevation, "size": config.size}, "table": table}
     (scratch / "evaluation.json").write_text(json.dumps(summary, indent=2))
     (scratch / "evaluation.md").write_text(table, encoding="utf-8")

@@ -20,7 +20,7 @@ from api.schemas import EvaluationCreate, JobOut, SweepCreate, SweepEntry, Sweep
 from api.services import evaluations
 from voxe_core.evaluate import format_table, mean_by_mode
 from voxe_service.models import EVALUATE, SUCCEEDED, ApiKey
-from voxe_service.settings import smoke_test_note
+from voxe_service.settings import smoke_test_roles
 
 router = APIRouter(tags=["evaluation"], route_class=StrictRoute)
 
@@ -108,5 +108,5 @@ def sweep_out(session: Session, sweep_id: str, key: ApiKey) -> SweepOut:
     return SweepOut(
         id=sweep_id, state=evaluations.sweep_state([j.state for j in jobs]),
         counts=dict(Counter(j.state for j in jobs)), entries=entries, rows=rows, means=mean_by_mode(rows),
-        table=smoke_test_note(*(j.params for j in scored)) + format_table(rows, extra_columns=("object",)),
+        table=format_table(rows, extra_columns=("object",), smoke_test=smoke_test_roles(*(j.params for j in scored))),
     )

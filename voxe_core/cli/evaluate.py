@@ -49,7 +49,7 @@ def cmd_evaluate(args) -> int:
     from voxe_core.backbones import load_grid
     from voxe_core.evaluate import (
         ClipScorer, EditSample, EvaluateConfig, InceptionFeatures, check_source_text_length, evaluate,
-        evaluation_steps, format_table,
+        evaluation_steps, format_table, smoke_test_roles,
     )
     from voxe_core.export import save_png
     from voxe_core.guidance.prompts import check_no_special_tokens, check_prompt_length
@@ -105,12 +105,13 @@ def cmd_evaluate(args) -> int:
         if result is None:
             print("voxe: evaluation cancelled, nothing written", file=sys.stderr)
             return EXIT_INTERRUPTED
+        smoke_test = smoke_test_roles(clip, fid)
         summary = {**result.summary(), "object": args.object, "clip_model": model,
-                   "inception": str(args.inception) if args.inception else None,
+                   "inception": str(args.inception) if args.inception else None, "smoke_test": smoke_test,
                    "ring": {"views": config.views, "elevation": config.elevation, "size": config.size},
                    "edits": [{"name": e.name, "grid": str(g[0]), "mask": g[2] if len(g) > 2 else None}
                              for e, g in zip(edits, args.edit)]}
-        table = format_table(result.rows, extra_columns=("name",))
+        table = format_table(result.rows, extra_columns=("name",), smoke_test=smoke_test)
         # Written whole into the staging first: a full disk there leaves --out as it was (it had left the
         # earlier run's summaries torn, then none beside this run's ring renders)
         write_json(staging / "evaluation.json", summary)
