@@ -1213,6 +1213,32 @@ def test_the_smoke_test_models_scores_are_labelled_as_such_in_every_table_and_su
     assert smoke_test_roles({"clip_model": "openai/clip-vit-base-patch32", "fid_model": "tiny"}) == ["FID"]
 
 
+def test_an_evaluation_with_the_default_fid_file_names_it_in_its_results_as_its_job_does(service, sphere_grid):
+    """VOXE_FID_MODEL unset (its default, VOXE_MODEL_DIR's inception-2015-12-05.pt): the job said fid
+    "inception-2015-12-05.pt in VOXE_MODEL_DIR", its evaluation.json and result fid_model "", naming no network."""
+    from sqlalchemy import update
+
+    from voxe_core.tiny_eval import build_tiny_inception
+    from voxe_service.db import session_scope
+    from voxe_service.models import Job
+    from worker import tasks
+
+    client, scene_id, root = service
+    edit = client.post("/v1/jobs", json={"scene_id": scene_id, "prompt": "a wood carving of a mic"}).json()
+    _as_if_edited(edit["id"], sphere_grid, sphere_grid, None, root)
+    job = client.post("/v1/evaluations", json={"job_ids": [edit["id"]], "object": "mic", "params": RING}).json()
+    with session_scope() as session:  # as created under the default setting (the fixture's is tiny)
+        record = session.get(Job, job["id"])
+        session.execute(update(Job).where(Job.id == job["id"]).values(params={**record.params, "fid_model": ""}))
+    build_tiny_inception(tasks.get_settings().model_dir / INCEPTION_FILE)  # a stand-in for the real file
+    assert tasks.evaluate_task.apply(args=(job["id"],)).get()["state"] == "done"
+    done = client.get(f"/v1/jobs/{job['id']}").json()
+    summary = json.loads(client.get(f"/v1/jobs/{job['id']}/artifacts/evaluation.json").content)
+    assert done["models"]["fid"] == "inception-2015-12-05.pt in VOXE_MODEL_DIR"
+    assert summary["fid_model"] == done["result"]["fid_model"] == done["models"]["fid"]
+    assert summary["clip_model"] == done["models"]["clip"] == "tiny (smoke test, random weights)"
+
+
 def test_cli_sweep_submits_to_the_service_and_prints_the_sweep_id(service, tmp_path, capsys):
     from service_helpers import api_in_thread
     from voxe_core.cli import main

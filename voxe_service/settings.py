@@ -21,7 +21,7 @@ from urllib.parse import quote, unquote, urlsplit
 from pydantic import Field, ValidationError, ValidationInfo, field_validator, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
-from voxe_core.constants import ATTENTION_MODEL_ID, CLIP_MODEL_ID, SDS_MODEL_ID, TINY_MODEL
+from voxe_core.constants import ATTENTION_MODEL_ID, CLIP_MODEL_ID, INCEPTION_FILE, SDS_MODEL_ID, TINY_MODEL
 from voxe_service.keys import is_key
 
 if TYPE_CHECKING:
@@ -448,6 +448,11 @@ def is_loopback(host: str) -> bool:
 def model_label(model: str) -> str:
     """What job records show for a model setting (the smoke-test model is always labelled as such)."""
     return TINY_MODEL_LABEL if model == TINY_MODEL else model
+
+
+def fid_model_label(model: str) -> str:
+    """What job records and evaluation results show for a ``VOXE_FID_MODEL`` setting (empty: the default file)."""
+    return model_label(model or f"{INCEPTION_FILE} in VOXE_MODEL_DIR")
 
 
 def smoke_test_roles(*params: dict) -> list[str]:

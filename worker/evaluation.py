@@ -17,7 +17,7 @@ from pathlib import Path
 
 from voxe_service.model_inventory import submission_note
 from voxe_service.models import SUCCEEDED, Job
-from voxe_service.settings import TINY_MODEL, Settings, model_label, smoke_test_roles
+from voxe_service.settings import TINY_MODEL, Settings, fid_model_label, model_label, smoke_test_roles
 from voxe_service.storage import StoredObject
 from worker import runtime
 from worker.inputs import fetch_grid, load_images, recorded_initial_grid
@@ -148,7 +148,7 @@ def run_evaluation(job: Job, settings: Settings, device: str, storage) -> None:
     smoke_test = smoke_test_roles(params)
     table = format_table(result.rows, extra_columns=("job_id",), smoke_test=smoke_test)
     summary = {**result.summary(), "object": params["object"], "clip_model": model_label(params["clip_model"]),
-               "fid_model": model_label(params["fid_model"]), "smoke_test": smoke_test, "reconstruction_id": rec.id,
+               "fid_model": fid_model_label(params["fid_model"]), "smoke_test": smoke_test, "reconstruction_id": rec.id,
                "ring": {"views": config.views, "elevation": config.elevation, "size": config.size}, "table": table}
     (scratch / "evaluation.json").write_text(json.dumps(summary, indent=2))
     (scratch / "evaluation.md").write_text(table, encoding="utf-8")

@@ -21,7 +21,7 @@ from api.services import jobs
 from voxe_core.presets import reconstruction_params
 from voxe_service.models import EVALUATE, R_SUCCEEDED, RUNNING, SUCCEEDED, Job, JobEvent, utcnow
 from voxe_service.progress import NO_FIT, fit_work, overall, stage_costs, stage_fraction
-from voxe_service.settings import model_label
+from voxe_service.settings import fid_model_label, model_label
 from voxe_service.texts import listed
 
 router = APIRouter(prefix="/v1/jobs", tags=["jobs"], route_class=StrictRoute)
@@ -106,7 +106,7 @@ def _waited_for(job: Job, rec) -> bool:
 def _models(job: Job) -> Models:
     if job.mode == EVALUATE:  # an evaluation's models live in its params, fixed when it was created
         return Models(sds=None, attention=None, clip=model_label(job.params.get("clip_model", "")),
-                      fid=model_label(job.params.get("fid_model") or "inception-2015-12-05.pt in VOXE_MODEL_DIR"))
+                      fid=fid_model_label(job.params.get("fid_model", "")))
     return Models(sds=model_label(job.sds_model),
                   attention=model_label(job.attention_model) if job.mode == "local" else None)
 
