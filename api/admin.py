@@ -26,7 +26,7 @@ from datetime import timedelta
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
-from api.auth import create_key, has_expired, key_of_token, token_key_id
+from api.auth import TOKEN_PREFIX, create_key, has_expired, key_of_token, token_key_id
 from api.services.jobs import request_cancel, rotate_webhook_secret
 from voxe_service.db import DATABASE_UNAVAILABLE, database_outage, run_migrations, session_scope
 from voxe_service.models import LOCAL_KEY_ID, PROCESSING, TERMINAL_STATES, ApiKey, Job, Scene, utcnow
@@ -92,9 +92,18 @@ def key_named(session: Session, given: str, *, local: str | None = "it has no to
               "key of every request)") -> tuple[ApiKey | None, str]:
     """The key ``given`` names, by its id or by its token (what one holding a leaked token has: it had been looked
     up as an id and printed back, secret and all), and else what to say, never quoting a token's secret. ``local``:
-    why the command does not apply to the built-in local key (None: it does)."""
+    why the command does not apply to the built-in local key (None: it does).
+
+    The spaces and line ending around it are cut, as around a --name: a token pasted with a space or read from a line
+    ending in CR LF had been printed back whole ("no API key ' voxe_<id>_<secret>'"), one ending in a newline refused
+    as "no API key has this token", the key left live. Other text holding "voxe_" (a pasted "Bearer voxe_...") is not
+    quoted: no key id holds it, and it may hold a secret."""
+    given = given.strip()
     if (key_id := token_key_id(given)) is not None:
         return key_of_token(session, given), f"no API key has this token (of key id {key_id!r}){LISTED}"
+    if TOKEN_PREFIX in given:
+        return None, (f"no API key: the text given holds {TOKEN_PREFIX!r} but is no token ({TOKEN_PREFIX}<key id>_"
+                      f"<secret>) nor a key id (not quoted: it may hold a secret){LISTED}")
     if given == LOCAL_KEY_ID and local is not None:  # (it had been "no API key 'local'", a key requests act as)
         return None, f"{LOCAL_KEY_ID!r} is the built-in key that requests act as with authentication off; {local}"
     return session.get(ApiKey, given), f"no API key {given!r}{LISTED}"

@@ -58,7 +58,7 @@ def create_key(session: Session, name: str, max_active_jobs: int | None = None,
 
 def token_key_id(token: str) -> str | None:
     """The key id a token names (``voxe_<key id>_<secret>``); None for text of any other form."""
-    match = _TOKEN.match(token)
+    match = _TOKEN.fullmatch(token)  # (match: its "$" also matched before a final "\n", a token no key has)
     return match.group(1) if match else None
 
 

@@ -310,6 +310,39 @@ def test_revoke_key_given_the_keys_token_revokes_it_and_never_prints_the_token(a
     assert auth_client.get("/v1/jobs", headers=bearer(other)).status_code == 200
 
 
+@pytest.mark.parametrize("around", [(" ", ""), ("", "\r\n"), ("", "\n"), ("\t", " ")])
+def test_a_token_given_with_spaces_or_a_line_ending_around_it_is_found_and_its_secret_never_printed(
+        auth_client, capsys, around):
+    """A token pasted with a space, or read from a file's line (CR LF), had been looked up as a key id and printed
+    back, secret and all ("no API key ' voxe_<id>_<secret>'"); one ending in a newline was refused as "no API key has
+    this token": the leaked key left live either way."""
+    from api import admin
+
+    key_id, token = _create_key("leaked")
+    secret = token.rpartition("_")[2]
+    assert admin.main(["update-key", around[0] + token + around[1], "--max-active-jobs", "4"]) == 0
+    assert f"updated key {key_id} (leaked): max_active_jobs=4" in capsys.readouterr().err
+    assert admin.main(["revoke-key", around[0] + token + around[1]]) == 0
+    err = capsys.readouterr().err
+    assert f"revoked key {key_id} (leaked)" in err and secret not in err
+    assert auth_client.get("/v1/jobs", headers=bearer(token)).status_code == 401
+
+
+def test_text_holding_a_token_that_names_no_key_is_not_quoted(auth_client, capsys):
+    """Text that is no token but holds one (a pasted "Bearer voxe_..." line) had been quoted whole: "no API key
+    'Bearer voxe_<id>_<secret>'"."""
+    from api import admin
+
+    _, token = _create_key("leaked")
+    for given in (f"Bearer {token}", f"'{token}'", f"{token},"):
+        assert admin.main(["revoke-key", given]) == 1
+        err = capsys.readouterr().err
+        assert token.rpartition("_")[2] not in err
+        assert "no API key: the text given holds 'voxe_' but is no token (voxe_<key id>_<secret>) nor a key id " \
+            "(not quoted: it may hold a secret) (python -m api.admin list-keys shows them)" in err
+    assert auth_client.get("/v1/jobs", headers=bearer(token)).status_code == 200
+
+
 def test_revoke_key_of_the_built_in_local_key_says_what_it_is(auth_client, capsys):
     """It had answered "no API key 'local' (python -m api.admin list-keys shows them)", a key every request acts as
     with authentication off, and that list-keys leaves out."""
