@@ -100,9 +100,19 @@ def presented_token(request: Request) -> str | None:
 
 def unauthorized(token: str | None, authorization: list[str] = ()) -> str:
     """The 401's detail for a request presenting ``token`` (None: none read from its ``authorization`` lines)."""
-    problem = "invalid or revoked API key" if token else "missing API key" + _unread(authorization)
+    problem = "invalid or revoked API key" + _schemed(token) if token else "missing API key" + _unread(authorization)
     return (f"{problem}: send 'Authorization: Bearer <key>' or 'X-API-Key: <key>' "
             "(keys come from 'python -m api.admin create-key')")
+
+
+def _schemed(token: str) -> str:
+    """Why a key is not read when ``Bearer `` is sent before it where the key goes alone (``X-API-Key: Bearer
+    voxe_...``, as Authorization is written): it had been told "invalid or revoked", a live key's holder left to
+    suspect the key. "" for any other text."""
+    scheme, _, rest = token.partition(" ")
+    if scheme.lower() == "bearer" and token_key_id(rest.strip()) is not None:
+        return " ('Bearer ' sent before it: X-API-Key takes the key alone, 'Authorization: Bearer <key>' once)"
+    return ""
 
 
 def _unread(authorization: list[str]) -> str:

@@ -107,6 +107,25 @@ def test_a_key_sent_without_bearer_or_under_another_scheme_is_told_why_it_was_no
     assert auth_client.get("/v1/scenes", headers={"Authorization": f"bearer {token}"}).status_code == 200
 
 
+def test_a_key_sent_with_bearer_where_it_goes_alone_is_told_why_it_was_not_read(auth_client):
+    """``X-API-Key: Bearer <key>`` (the value written as Authorization's), or ``Authorization: Bearer Bearer <key>``,
+    had been told "invalid or revoked API key", a live key's holder left to suspect the key. The 401 says what was
+    not read, without quoting the key."""
+    _, token = _create_key("alice")
+    usage = ("send 'Authorization: Bearer <key>' or 'X-API-Key: <key>' (keys come from 'python -m api.admin "
+             "create-key')")
+    why = "'Bearer ' sent before it: X-API-Key takes the key alone, 'Authorization: Bearer <key>' once"
+    for headers in ({"X-API-Key": f"Bearer {token}"}, {"X-API-Key": f"bearer {token}"},
+                    {"Authorization": f"Bearer Bearer {token}"}):
+        refused = auth_client.get("/v1/scenes", headers=headers)
+        assert (refused.status_code, refused.json()["detail"]) == (401, f"invalid or revoked API key ({why}): {usage}")
+        assert token not in refused.text
+    for other in ("Bearer voxe_nope", "Bearer x", f"Token {token}"):  # no key of its form after Bearer: as before
+        refused = auth_client.get("/v1/scenes", headers={"X-API-Key": other})
+        assert refused.json()["detail"] == f"invalid or revoked API key: {usage}"
+    assert auth_client.get("/v1/scenes", headers={"X-API-Key": token}).status_code == 200
+
+
 def test_an_authorization_scheme_sent_in_utf8_is_quoted_as_sent(auth_client):
     """The 401 quoting an Authorization scheme it does not read quoted its UTF-8 bytes read as Latin-1, one character
     a byte ('SchlÃ¼ssel' for "Schlüssel"), where the other messages quoting a header quote it as the client wrote it
