@@ -3073,6 +3073,43 @@ def test_a_job_accepted_while_the_broker_refused_the_ingest_keeps_the_scene_fail
         assert session.get(Scene, scene["id"]).size_bytes == 0
 
 
+def test_an_upload_refused_503_whose_scene_a_job_kept_is_uploaded_anew_by_a_retry_with_its_key(client, dataset, root,
+                                                                                                monkeypatch):
+    """The 503 of an upload whose ingest the broker refused says "try again", and a retry with its Idempotency-Key
+    submits it again. Where a job accepted on the listed scene meanwhile kept that scene (failed), the key had been
+    kept with it: the retry, voxe_client's own after a 503, answered 200 with the failed scene, never uploaded."""
+    from voxe_service.db import session_scope
+    from voxe_service.models import LOCAL_KEY_ID, Job
+    from voxe_service.queue import TaskQueue
+
+    send_ingest = TaskQueue.send_ingest
+
+    def accept_a_job_then_refuse(self, scene_id):
+        with session_scope() as session:  # what a concurrent POST /v1/jobs commits on the processing scene
+            session.add(Job(id="j" * 32, scene_id=scene_id, owner_key_id=LOCAL_KEY_ID, prompt="a mic", mode="global",
+                            params={}, sds_model="tiny", attention_model="tiny", device="cpu", state="queued"))
+        raise ConnectionError("broker down")
+
+    archive = zip_folder(dataset, root / "s.zip", prefix="mic_small")
+
+    def upload():
+        with open(archive, "rb") as handle:
+            return client.post("/v1/scenes", files={"archive": ("s.zip", handle, "application/zip")},
+                               headers={"Idempotency-Key": "up-1"})
+
+    monkeypatch.setattr(TaskQueue, "send_ingest", accept_a_job_then_refuse)
+    assert upload().status_code == 503
+    (kept,) = client.get("/v1/scenes").json()["items"]
+    assert kept["state"] == "failed"  # kept for its job, as before
+    monkeypatch.setattr(TaskQueue, "send_ingest", send_ingest)
+    again = upload()
+    assert again.status_code == 201, again.text
+    assert again.json()["id"] != kept["id"] and again.json()["state"] == "processing"
+    assert "idempotent-replayed" not in again.headers
+    replay = upload()  # the key now names the scene this retry made
+    assert replay.status_code == 200 and replay.json()["id"] == again.json()["id"]
+
+
 def test_route_voxelize_on_an_image_scene_is_a_422_naming_the_field(client, dataset, root):
     scene = make_scene(client, dataset, root)
     body = {"scene_id": scene["id"], **JOB, "params": {"reconstruction": {"route": "voxelize"}}}

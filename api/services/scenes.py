@@ -175,7 +175,8 @@ def _queue_ingest(session: Session, storage: Storage, queue: TaskQueue, scene: S
     """Hand the ingest to the broker. When it is down (503) the upload was never accepted: its scene, bytes and
     Idempotency-Key go, so nothing is listed and a retry with the key uploads it anew. But the scene was listed
     while the broker took its time to refuse: a job accepted on it meanwhile keeps it, failed with the reason (as
-    its ingest would have), and the job fails naming it."""
+    its ingest would have), and the job fails naming it; the key goes even so (kept, it had answered the retry the
+    503 asks for 200 with that failed scene)."""
     scene_id = scene.id
     try:
         task_id = queue.send_ingest(scene_id)
@@ -187,8 +188,8 @@ def _queue_ingest(session: Session, storage: Storage, queue: TaskQueue, scene: S
             fail_scene(session, scene_id, reason)
         else:
             session.delete(scene)
-            if idem is not None:
-                idem.forget(session, key)
+        if idem is not None:
+            idem.forget(session, key)
         session.commit()
         storage.discard_prefixes(scene_key(scene_id))
         raise try_again_soon(reason) from None
