@@ -137,6 +137,20 @@ def _expiry(key: ApiKey) -> str:
         else f"expires {when}"
 
 
+def _secret_reader(key: ApiKey) -> str:
+    """Who reads a rotated webhook secret: "its holder reads it at GET /v1/webhooks/secret" had been said of a revoked
+    or expired key too, whose token that answers 401 (rotating still serves: the deliveries left are signed with a
+    secret the leaked one no longer forges)."""
+    if key.revoked_at is not None:
+        return ("which no one can read: the key is revoked (GET /v1/webhooks/secret answers its token 401), so its "
+                "receivers refuse the deliveries still sent")
+    if has_expired(key):
+        return ("which its holder reads at GET /v1/webhooks/secret only once the key is given a later expiry "
+                "(update-key --expires-in): it expired "
+                f"{key.expires_at.isoformat(timespec='seconds')}")
+    return "which its holder reads at GET /v1/webhooks/secret"
+
+
 UPDATES = ("max_active_jobs", "max_upload_bytes", "expires_in")
 
 
@@ -243,8 +257,8 @@ def _command(argv: list[str] | None) -> int:
                 return 1
             rotate_webhook_secret(session=session, key=key)
             print(f"rotated the webhook secret of key {key.id} ({key.name}): every delivery attempt from now on, a "
-                  "retry of an earlier one included, is signed with the new one, which its holder reads at GET "
-                  "/v1/webhooks/secret", file=sys.stderr)
+                  f"retry of an earlier one included, is signed with the new one, {_secret_reader(key)}",
+                  file=sys.stderr)
         else:
             key, missing = key_named(session, args.key_id)
             if key is None:

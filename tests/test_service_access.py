@@ -362,6 +362,39 @@ def test_text_holding_a_token_that_names_no_key_is_not_quoted(auth_client, capsy
     assert auth_client.get("/v1/jobs", headers=bearer(token)).status_code == 200
 
 
+def test_rotate_webhook_secret_of_a_revoked_or_expired_key_says_who_can_read_the_new_one(auth_client, capsys):
+    """"which its holder reads at GET /v1/webhooks/secret" had been said of a revoked key (and of an expired one),
+    whose token that endpoint answers 401."""
+    from api import admin
+    from voxe_service.db import session_scope
+    from voxe_service.models import ApiKey, utcnow
+
+    key_id, token = _create_key("gone")
+    assert admin.main(["revoke-key", key_id]) == 0
+    capsys.readouterr()
+    assert admin.main(["rotate-webhook-secret", key_id]) == 0
+    err = capsys.readouterr().err
+    assert err.startswith(f"rotated the webhook secret of key {key_id} (gone)")
+    assert ("is signed with the new one, which no one can read: the key is revoked (GET /v1/webhooks/secret answers "
+            "its token 401), so its receivers refuse the deliveries still sent") in err
+    assert auth_client.get("/v1/webhooks/secret", headers=bearer(token)).status_code == 401
+
+    key_id, token = _create_key("lapsed")
+    with session_scope() as session:
+        session.get(ApiKey, key_id).expires_at = when = utcnow() - timedelta(hours=1)
+    assert admin.main(["rotate-webhook-secret", key_id]) == 0
+    assert ("is signed with the new one, which its holder reads at GET /v1/webhooks/secret only once the key is given "
+            "a later expiry (update-key --expires-in): it expired "
+            f"{when.isoformat(timespec='seconds')}") in capsys.readouterr().err
+    assert auth_client.get("/v1/webhooks/secret", headers=bearer(token)).status_code == 401
+
+    key_id, token = _create_key("live")  # a live key's holder reads it, as before
+    assert admin.main(["rotate-webhook-secret", key_id]) == 0
+    assert capsys.readouterr().err.rstrip().endswith(
+        "is signed with the new one, which its holder reads at GET /v1/webhooks/secret")
+    assert auth_client.get("/v1/webhooks/secret", headers=bearer(token)).status_code == 200
+
+
 def test_revoke_key_of_the_built_in_local_key_says_what_it_is(auth_client, capsys):
     """It had answered "no API key 'local' (python -m api.admin list-keys shows them)", a key every request acts as
     with authentication off, and that list-keys leaves out."""
