@@ -264,6 +264,10 @@ def _command(argv: list[str] | None) -> int:
             if key is None:
                 print(missing, file=sys.stderr)
                 return 1
+            # A key revoked before is said to be, and since when ("revoked key" had read as though it was live until
+            # now: the time a leaked key was cut off is what an incident's timeline needs).
+            done = (f"revoked key {key.id} ({key.name})" if key.revoked_at is None else f"key {key.id} ({key.name}) "
+                    f"was already revoked at {key.revoked_at.isoformat(timespec='seconds')}")
             if key.revoked_at is None:
                 key.revoked_at = utcnow()
                 session.commit()  # its token refused from here on, before its jobs are canceled
@@ -271,9 +275,8 @@ def _command(argv: list[str] | None) -> int:
             failed = fail_processing_scenes(session, key)
             session.commit()
             get_storage(get_settings()).discard_prefixes(*(scene_key(scene_id) for scene_id in failed))
-            print(f"revoked key {key.id} ({key.name}); its {canceled} unfinished job(s) canceled (a running one "
-                  f"stops at its next cancel check) and {len(failed)} scene(s) still processing failed",
-                  file=sys.stderr)
+            print(f"{done}; its {canceled} unfinished job(s) canceled (a running one stops at its next cancel check) "
+                  f"and {len(failed)} scene(s) still processing failed", file=sys.stderr)
     return 0
 
 

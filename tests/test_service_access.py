@@ -395,6 +395,25 @@ def test_rotate_webhook_secret_of_a_revoked_or_expired_key_says_who_can_read_the
     assert auth_client.get("/v1/webhooks/secret", headers=bearer(token)).status_code == 200
 
 
+def test_revoke_key_of_a_key_revoked_before_says_since_when(auth_client, capsys):
+    """A second revoke-key had printed "revoked key <id>" as the first did, as though the key had been live until
+    then; it says when it was revoked, and still cancels what is unfinished (exit 0, as before)."""
+    from api import admin
+    from voxe_service.db import session_scope
+    from voxe_service.models import ApiKey
+
+    key_id, token = _create_key("leaked")
+    assert admin.main(["revoke-key", key_id]) == 0
+    assert capsys.readouterr().err.startswith(f"revoked key {key_id} (leaked); its 0 unfinished job(s) canceled")
+    with session_scope() as session:
+        when = session.get(ApiKey, key_id).revoked_at.isoformat(timespec="seconds")
+    assert admin.main(["revoke-key", token]) == 0
+    assert capsys.readouterr().err.startswith(f"key {key_id} (leaked) was already revoked at {when}; its 0 "
+                                              "unfinished job(s) canceled")
+    with session_scope() as session:
+        assert session.get(ApiKey, key_id).revoked_at.isoformat(timespec="seconds") == when  # not moved
+
+
 def test_revoke_key_of_the_built_in_local_key_says_what_it_is(auth_client, capsys):
     """It had answered "no API key 'local' (python -m api.admin list-keys shows them)", a key every request acts as
     with authentication off, and that list-keys leaves out."""
