@@ -363,7 +363,7 @@ class Idempotency:
         if found is None:
             return None
         row, resource = found
-        created = f"{self.noun or self.endpoint[:-1]} {row.resource_id!r}"
+        created = self._created(row)
         if resource is None:
             raise HTTPException(status.HTTP_409_CONFLICT, f"the {created} that Idempotency-Key {self.key!r} created "
                                 "has been deleted; use a new key")
@@ -391,9 +391,14 @@ class Idempotency:
                    for digest in (self.request_sha256, self.earlier_sha256) if digest is not None):
             raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT,
                                 f"Idempotency-Key {self.key!r} was already used with a different request body "
-                                f"(it created {self.noun or self.endpoint} {row.resource_id!r}); use a new key for a "
+                                f"(it created {self._created(row)}); use a new key for a "
                                 "new request")
         return row, resource
+
+    def _created(self, row: IdempotencyRecord) -> str:
+        """What the record's request created, as messages name it: "job 'ab12'" (the 422 for another body had said
+        "it created jobs 'ab12'", the endpoint's plural)."""
+        return f"{self.noun or self.endpoint[:-1]} {row.resource_id!r}"
 
     def _this_record(self, owner: ApiKey):
         """The condition selecting this Idempotency-Key's record."""

@@ -1256,8 +1256,9 @@ def test_job_creation_is_idempotent(auth_client, mic_zip):
     conflict = auth_client.post("/v1/jobs", json={**body, "prompt": "a mic wearing a hat", "edit_words": ["hat"]},
                                 headers=headers)
     assert conflict.status_code == 422
-    assert "Idempotency-Key 'retry-1' was already used with a different request body" in conflict.json()["detail"]
-    assert created.json()["id"] in conflict.json()["detail"]
+    assert conflict.json()["detail"] == (  # the job named as a job ("it created jobs '...'" had been said)
+        f"Idempotency-Key 'retry-1' was already used with a different request body (it created job "
+        f"{created.json()['id']!r}); use a new key for a new request")
     # Keys are per API key: bob's "retry-1" is his own (and alice's scene is not his).
     response = auth_client.post("/v1/jobs", json=body, headers={**bearer(bob), "Idempotency-Key": "retry-1"})
     assert response.status_code == 404
@@ -1297,7 +1298,7 @@ def test_evaluation_creation_is_idempotent_and_a_refused_one_runs_again_on_retry
     assert replayed.json()["id"] == created.json()["id"] and evaluations() == [created.json()["id"]]
     conflict = local_client.post("/v1/evaluations", json={**body, "object": "lamp"}, headers=headers)
     assert conflict.status_code == 422 and conflict.json()["detail"] == (
-        f"Idempotency-Key 'eval-1' was already used with a different request body (it created evaluations "
+        f"Idempotency-Key 'eval-1' was already used with a different request body (it created evaluation "
         f"{created.json()['id']!r}); use a new key for a new request")
     # per endpoint: the same key on POST /v1/jobs is another request's
     assert local_client.post("/v1/jobs", json={"scene_id": scene["id"], **JOB}, headers=headers).status_code == 201
@@ -1517,6 +1518,7 @@ def test_scene_creation_is_idempotent(local_client, mic_zip, dataset, root, tmp_
     other = zip_folder(dataset, tmp_path / "two.zip", prefix="mic_small", only=lambda rel: "r_4" not in rel)
     conflict = _upload(local_client, other, headers)
     assert conflict.status_code == 422 and "different request body" in conflict.json()["detail"]
+    assert f"(it created scene {created.json()['id']!r})" in conflict.json()["detail"]  # (had been "scenes '...'")
     # The same bytes under another file name ask for another scene name (a scene is named after its zip): it had
     # been replayed as the scene named "mic".
     renamed = _upload(local_client, mic_zip, headers, name="guitar.zip")
