@@ -29,7 +29,7 @@ from starlette.datastructures import Headers
 from api.http_semantics import DATABASE_UNAVAILABLE, as_sent, route_path, unavailable
 from voxe_service.db import get_sessionmaker
 from voxe_service.quotas import lock_key, stored_bytes, upload_limit
-from voxe_service.models import PROCESSING, QUEUED, RUNNING, ApiKey, IdempotencyRecord, Job, utcnow
+from voxe_service.models import LOCAL_KEY_ID, PROCESSING, QUEUED, RUNNING, ApiKey, IdempotencyRecord, Job, utcnow
 from voxe_service.settings import Settings, get_settings, is_loopback
 from voxe_service.texts import listed
 
@@ -282,11 +282,14 @@ def check_active_jobs(session: Session, key: ApiKey, settings: Settings, adding:
     or 422 when ``adding`` alone is more (no retry could ever be accepted)."""
     limit = key.max_active_jobs or settings.max_active_jobs_per_key
     if adding > limit:
+        # Raised on this key: "use a key created with a higher --max-active-jobs" had sent its holder to a new key,
+        # which sees none of this one's scenes and jobs, where update-key raises this one's, token unchanged.
+        raise_it = ("raise VOXE_MAX_ACTIVE_JOBS_PER_KEY" if key.id == LOCAL_KEY_ID else "have the service's admin "
+                    f"raise the key's own ('python -m api.admin update-key {key.id} --max-active-jobs {adding}')")
         raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT,
                             f"this request creates {adding} jobs but key {key.name!r} may have at most {limit} queued "
                             "or running (VOXE_MAX_ACTIVE_JOBS_PER_KEY or the key's own), so it can never be accepted: "
-                            "ask for fewer (a sweep over fewer scenes), or use a key created with a higher "
-                            "--max-active-jobs")
+                            f"ask for fewer (a sweep over fewer scenes), or {raise_it}")
     active = session.scalar(select(func.count()).select_from(Job)
                             .where(Job.owner_key_id == key.id, Job.state.in_((QUEUED, RUNNING)))) or 0
     if active > limit:

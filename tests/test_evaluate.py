@@ -1103,7 +1103,8 @@ def test_sweep_submits_the_paper_protocol_as_one_batch_with_one_table(service, s
         session.execute(update(ApiKey).where(ApiKey.id == LOCAL_KEY_ID).values(max_active_jobs=11))
     over = client.post("/v1/sweeps", json=body)  # more than the limit alone: never accepted, so not a 429 to retry
     assert over.status_code == 422 and "this request creates 12 jobs but key 'local (authentication off, loopback only)' may have at most 11" in \
-        over.json()["detail"] and "can never be accepted" in over.json()["detail"]
+        over.json()["detail"] and over.json()["detail"].endswith(
+            "can never be accepted: ask for fewer (a sweep over fewer scenes), or raise VOXE_MAX_ACTIVE_JOBS_PER_KEY")
     with session_scope() as session:  # all or nothing: no job of the refused sweep was kept
         assert session.scalar(select(func.count()).select_from(Job)) == 0
         session.execute(update(ApiKey).where(ApiKey.id == LOCAL_KEY_ID).values(max_active_jobs=None))

@@ -1036,6 +1036,25 @@ def test_concurrent_job_quota_is_429_with_retry_after(auth_client, mic_zip):
         assert response.status_code == 201
 
 
+def test_a_request_over_a_keys_whole_job_quota_says_how_to_raise_that_keys_own(auth_client, mic_zip, capsys):
+    """A sweep of more jobs than the key may ever run had been told "use a key created with a higher
+    --max-active-jobs": a new key, which sees none of this one's scenes. update-key raises this one's."""
+    from api import admin
+
+    key_id, token = _create_key("small", max_active_jobs=2)
+    scene = _upload(auth_client, mic_zip, bearer(token)).json()
+    body = {"scenes": [{"scene_id": scene["id"], "object": "mic"}]}
+    over = auth_client.post("/v1/sweeps", json=body, headers=bearer(token))
+    assert (over.status_code, over.json()["detail"]) == (422, (
+        "this request creates 12 jobs but key 'small' may have at most 2 queued or running "
+        "(VOXE_MAX_ACTIVE_JOBS_PER_KEY or the key's own), so it can never be accepted: ask for fewer (a sweep over "
+        f"fewer scenes), or have the service's admin raise the key's own ('python -m api.admin update-key {key_id} "
+        "--max-active-jobs 12')"))
+    assert admin.main(["update-key", key_id, "--max-active-jobs", "12"]) == 0  # what it says, run as said
+    capsys.readouterr()
+    assert auth_client.post("/v1/sweeps", json=body, headers=bearer(token)).status_code == 201
+
+
 @BOTH_DATABASES
 def test_upload_quota_is_429_and_leaves_nothing(auth_client, mic_zip, root):  # noqa: F811
     _, probe = _create_key("probe")
