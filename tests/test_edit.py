@@ -534,6 +534,33 @@ def test_a_grid_a_finite_loss_made_nan_is_neither_returned_nor_checkpointed(smal
         edit(small_sphere, "a dog", OverflowingBackwardGuidance(), dataclasses.replace(config, checkpoint_every=0))
 
 
+FLOAT16_ADVICE = ("float16 overflowing? the guidance runs in float16, its weights' dtype: run it under bf16 autocast "
+                  "(a job's autocast \"bf16\", voxe edit --autocast bf16), or try a lower lr")
+
+
+@pytest.mark.parametrize("guidance_class, iterations, end", [
+    (DivergingGuidance, 3, r"; the steps before were finite \({}\)$"),  # its loss NaN at the 3rd step
+    (OverflowingBackwardGuidance, 2, r" \(a gradient that overflowed in the backward: {}\); not saved$"),  # G_e NaN
+])
+@pytest.mark.parametrize("weights, autocast, advice", [
+    (torch.float16, None, re.escape(FLOAT16_ADVICE)),  # a CUDA model's weights (from_pretrained's dtype there)
+    (torch.float32, None, "try a lower lr"),  # no half precision ran
+    (torch.float32, "fp16", "try a lower lr"),  # bfloat16 on the CPU: float32's range
+])
+def test_a_diverged_edit_is_told_what_to_try_for_the_precision_its_guidance_ran_in(
+        guidance_class, iterations, end, weights, autocast, advice, small_sphere):
+    """Each had said "half precision overflowing? try autocast off, or a lower lr" to every run: to one with autocast
+    off already, whose float16 model (a CUDA worker's, or `voxe edit` there) runs in float16 whatever autocast is
+    off, and to a float32 run on the CPU, with no half precision in it."""
+    guidance = guidance_class()
+    guidance.dtype = weights
+    with pytest.raises(EditDiverged, match=end.format(advice)) as raised:
+        edit(small_sphere, "a dog", guidance, EditConfig(iterations=iterations, render_size=SIZE,
+                                                         autocast_dtype=autocast),
+             Callbacks(on_warning=lambda stage, text: None))
+    assert "autocast off" not in str(raised.value)
+
+
 @pytest.mark.parametrize("resumed", [False, True])
 def test_a_cancel_after_a_step_that_left_the_grid_nan_stays_a_cancel_keeping_the_earlier_checkpoint(
         resumed, small_sphere, tmp_path):

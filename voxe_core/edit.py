@@ -365,6 +365,19 @@ def autocast_dtype(device: torch.device, name: str | None, callbacks: Callbacks)
     return dtype
 
 
+def overflow_advice(autocast: torch.dtype | None, weights: torch.dtype) -> str:
+    """What an edit whose step overflowed is told to try, by the precision its guidance runs in (``autocast``:
+    :func:`autocast_dtype`'s, else the model's ``weights``): float16 (a CUDA model's weights, from_pretrained's
+    default there, or fp16 autocast) overflows past 65,504; bfloat16 has float32's range. "try autocast off" had been
+    said to every run: to one with autocast off, whose float16 weights run in float16 all the same, and to a float32
+    one on the CPU, where no half precision ran."""
+    if (autocast or weights) != torch.float16:
+        return "try a lower lr"
+    runs = "under fp16 autocast" if autocast is not None else "in float16, its weights' dtype"
+    return (f"float16 overflowing? the guidance runs {runs}: run it under bf16 autocast (a job's autocast \"bf16\", "
+            "voxe edit --autocast bf16), or try a lower lr")
+
+
 def _make_adam(param: torch.nn.Parameter, config: EditConfig) -> torch.optim.Adam:
     try:
         return torch.optim.Adam([param], lr=config.lr, betas=tuple(config.betas), fused=True)
@@ -690,8 +703,7 @@ def edit(
         if not finite():
             raise EditDiverged(
                 f"the edit diverged by iteration {done}: G_e's features hold infinite or NaN values though every loss "
-                "was finite (a gradient that overflowed in the backward: a float16 (fp16) guidance? try autocast "
-                "off, or a lower lr); not saved")
+                f"was finite (a gradient that overflowed in the backward: {advice}); not saved")
 
     def checkpoint(done: int) -> None:
         check_finite(done)
@@ -726,6 +738,7 @@ def edit(
     if (off := regulariser_off(initial_grid, config)) is not None:  # (where the run starts: after what it refuses)
         callbacks.warning("edit", off)
     guidance_dtype = autocast_dtype(device, config.autocast_dtype, callbacks)
+    advice = overflow_advice(guidance_dtype, guidance.dtype)  # (said where a step overflowed)
     T = int(guidance.num_train_timesteps)
     last_checkpoint = _checkpoint_holds(checkpoint_path, resume_from, start)
     if start == 0:
@@ -817,8 +830,7 @@ def edit(
             if not math.isfinite(total_value):
                 raise EditDiverged(
                     f"the edit diverged at iteration {done}: its loss is {total_value} (SDS {sds_value}, "
-                    f"regulariser {reg_value}); the steps before were finite (half precision overflowing? try "
-                    "autocast off, or a lower lr)")
+                    f"regulariser {reg_value}); the steps before were finite ({advice})")
             nonfinite_steps = nonfinite_steps + 1 if nonfinite_value >= 1.0 else 0
             if nonfinite_steps >= MAX_NONFINITE_GUIDANCE_STEPS:
                 raise EditDiverged(
