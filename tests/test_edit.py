@@ -606,16 +606,49 @@ def _overflowing_unet(guidance, monkeypatch, channels):
     monkeypatch.setattr(guidance, "_eager_unet", overflowing)
 
 
-def test_a_guidance_overflowing_everywhere_stops_the_edit_naming_fp16(small_sphere, tiny_guidance, monkeypatch):
-    """Its gradient, zeroed entry by entry, had left a finite loss, so the edit ran on and "succeeded" unchanged."""
+def test_a_guidance_overflowing_everywhere_stops_the_edit_naming_its_precision(small_sphere, tiny_guidance,
+                                                                               monkeypatch):
+    """Its gradient, zeroed entry by entry, had left a finite loss, so the edit ran on and "succeeded" unchanged. The
+    tiny guidance runs in float32: no float16 overflow (a float16 one: the test below)."""
     _overflowing_unet(tiny_guidance, monkeypatch, slice(None))
     reports, steps = [], edit_module.MAX_NONFINITE_GUIDANCE_STEPS
     with pytest.raises(EditDiverged, match=rf"at iteration {steps}: the guidance's SDS gradient was infinite or NaN in "
-                                           rf"every entry for the last {steps} iterations .*float16 \(fp16\) UNet "
-                                           "overflowing; run the guidance in float32 or bfloat16"):
+                                           rf"every entry for the last {steps} iterations \(zeroed, so the edit stood "
+                                           r"still\): no float16 overflow: the guidance runs in float32; its model "
+                                           r"damaged\?$"):
         edit(small_sphere, "a dog", tiny_guidance, EditConfig(iterations=steps + 5, render_size=16), _collect(reports))
     assert [r.info["sds_nonfinite_fraction"] for r in reports] == [1.0] * (steps - 1)
     assert all(math.isfinite(r.losses["total"]) for r in reports)
+
+
+class HalfGuidance(FakeGuidance):
+    """A float16 guidance (a CUDA model's weights) whose UNet overflows in ``share`` of its SDS gradient's entries."""
+
+    dtype = torch.float16
+
+    def __init__(self, share):
+        super().__init__()
+        self.share = share
+
+    def sds_loss(self, images, text_embeddings, timesteps, guidance_scale=100.0, generator=None):
+        loss, diagnostics = super().sds_loss(images, text_embeddings, timesteps, guidance_scale, generator)
+        return loss, {**diagnostics, "nonfinite_fraction": torch.tensor(self.share)}
+
+
+@pytest.mark.parametrize("share", [0.25, 1.0])
+def test_a_float16_guidance_overflowing_is_told_to_run_under_bf16_autocast(share, small_sphere):
+    """Each run had been told "a float16 (fp16) UNet overflowing; run the guidance in float32 or bfloat16": a float32
+    one too (the test above), and one on CUDA, whose guidance loads in float16 (autocast off leaves it so), not how:
+    float32 is no choice there, bfloat16 autocast is."""
+    told = ("a float16 UNet overflowing? the guidance runs in float16, its weights' dtype: run it under bf16 autocast "
+            "(a job's autocast \"bf16\", voxe edit --autocast bf16)")
+    warnings, steps = [], edit_module.MAX_NONFINITE_GUIDANCE_STEPS
+    run = contextlib.nullcontext() if share < 1 else pytest.raises(EditDiverged, match=re.escape(
+        f"for the last {steps} iterations (zeroed, so the edit stood still): {told}") + "$")
+    with run:
+        edit(small_sphere, "a dog", HalfGuidance(share), EditConfig(iterations=steps, render_size=SIZE),
+             Callbacks(on_warning=lambda stage, text: warnings.append(text)))
+    assert len(warnings) == 1 and f"were infinite or NaN and were zeroed ({told}); the edit goes on" in warnings[0]
 
 
 def test_a_guidance_overflowing_across_a_resume_stops_where_an_uninterrupted_run_does(small_sphere, tiny_guidance,
@@ -653,7 +686,7 @@ def test_a_guidance_overflowing_in_part_is_reported_and_edits_on(small_sphere, t
     edit(small_sphere, "a dog", tiny_guidance, EditConfig(iterations=steps, render_size=16), callbacks)
     assert [r.info["sds_nonfinite_fraction"] for r in reports] == [0.25] * steps
     assert warnings == [("edit", "iteration 1: 25% of the guidance's SDS gradient entries were infinite or NaN and were "
-                                 "zeroed (a float16 (fp16) UNet overflowing? run the guidance in float32 or bfloat16); "
+                                 "zeroed (no float16 overflow: the guidance runs in float32; its model damaged?); "
                                  "the edit goes on (it stops after 10 steps in a row with every entry so), said once (each "
                                  "step's share: its sds_nonfinite_fraction)")]
 

@@ -365,17 +365,39 @@ def autocast_dtype(device: torch.device, name: str | None, callbacks: Callbacks)
     return dtype
 
 
-def overflow_advice(autocast: torch.dtype | None, weights: torch.dtype) -> str:
-    """What an edit whose step overflowed is told to try, by the precision its guidance runs in (``autocast``:
-    :func:`autocast_dtype`'s, else the model's ``weights``): float16 (a CUDA model's weights, from_pretrained's
-    default there, or fp16 autocast) overflows past 65,504; bfloat16 has float32's range. "try autocast off" had been
-    said to every run: to one with autocast off, whose float16 weights run in float16 all the same, and to a float32
-    one on the CPU, where no half precision ran."""
+BF16_AUTOCAST = 'run it under bf16 autocast (a job\'s autocast "bf16", voxe edit --autocast bf16)'
+"""What a guidance overflowing float16 is told to do (bfloat16 has float32's range; float32 itself is no choice on
+CUDA, where the guidance loads in float16)."""
+
+
+def half_precision(autocast: torch.dtype | None, weights: torch.dtype) -> str | None:
+    """How the guidance runs in float16 (``autocast``: :func:`autocast_dtype`'s, else the model's ``weights``: a CUDA
+    model's, from_pretrained's default there), which overflows past 65,504; None where it does not."""
     if (autocast or weights) != torch.float16:
+        return None
+    return "under fp16 autocast" if autocast is not None else "in float16, its weights' dtype"
+
+
+def overflow_advice(autocast: torch.dtype | None, weights: torch.dtype) -> str:
+    """What an edit whose step overflowed is told to try, by the precision its guidance runs in
+    (:func:`half_precision`). "try autocast off" had been said to every run: to one with autocast off, whose float16
+    weights run in float16 all the same, and to a float32 one on the CPU, where no half precision ran."""
+    runs = half_precision(autocast, weights)
+    if not runs:
         return "try a lower lr"
-    runs = "under fp16 autocast" if autocast is not None else "in float16, its weights' dtype"
-    return (f"float16 overflowing? the guidance runs {runs}: run it under bf16 autocast (a job's autocast \"bf16\", "
-            "voxe edit --autocast bf16), or try a lower lr")
+    return f"float16 overflowing? the guidance runs {runs}: {BF16_AUTOCAST}, or try a lower lr"
+
+
+def unet_overflow_cause(autocast: torch.dtype | None, weights: torch.dtype) -> str:
+    """What is said of a guidance whose SDS gradient had infinite or NaN entries (zeroed), by the precision it runs in
+    (:func:`half_precision`): a float16 UNet overflowing, told what to do; in bfloat16 or float32, whose range a sound
+    model stays within, not that. Every run had been told of "a float16 (fp16) UNet overflowing; run the guidance in
+    float32 or bfloat16": a float32 one too, and a CUDA one, whose guidance loads in float16, not how."""
+    runs = half_precision(autocast, weights)
+    if runs:
+        return f"a float16 UNet overflowing? the guidance runs {runs}: {BF16_AUTOCAST}"
+    dtype = str(autocast or weights).removeprefix("torch.")
+    return f"no float16 overflow: the guidance runs in {dtype}; its model damaged?"
 
 
 def _make_adam(param: torch.nn.Parameter, config: EditConfig) -> torch.optim.Adam:
@@ -739,6 +761,7 @@ def edit(
         callbacks.warning("edit", off)
     guidance_dtype = autocast_dtype(device, config.autocast_dtype, callbacks)
     advice = overflow_advice(guidance_dtype, guidance.dtype)  # (said where a step overflowed)
+    cause = unet_overflow_cause(guidance_dtype, guidance.dtype)  # (said where its SDS gradient was not finite)
     T = int(guidance.num_train_timesteps)
     last_checkpoint = _checkpoint_holds(checkpoint_path, resume_from, start)
     if start == 0:
@@ -835,14 +858,13 @@ def edit(
             if nonfinite_steps >= MAX_NONFINITE_GUIDANCE_STEPS:
                 raise EditDiverged(
                     f"the edit diverged at iteration {done}: the guidance's SDS gradient was infinite or NaN in every "
-                    f"entry for the last {nonfinite_steps} iterations (zeroed, so the edit stood still): a float16 "
-                    "(fp16) UNet overflowing; run the guidance in float32 or bfloat16")
+                    f"entry for the last {nonfinite_steps} iterations (zeroed, so the edit stood still): {cause}")
             if nonfinite_value > 0 and not zeroed_said:  # (in the progress info alone, no job or CLI user had seen it)
                 zeroed_said = True
                 callbacks.warning("edit", f"iteration {done}: {nonfinite_value * 100:.3g}% of the guidance's SDS "
-                                          "gradient entries were infinite or NaN and were zeroed (a float16 (fp16) UNet "
-                                          "overflowing? run the guidance in float32 or bfloat16); the edit goes on (it stops "
-                                          f"after {MAX_NONFINITE_GUIDANCE_STEPS} steps in a row with every entry so), "
+                                          f"gradient entries were infinite or NaN and were zeroed ({cause}); the edit "
+                                          f"goes on (it stops after {MAX_NONFINITE_GUIDANCE_STEPS} steps in a row with "
+                                          "every entry so), "
                                           "said once (each step's share: its sds_nonfinite_fraction)")
             t_lo, t_hi = config.schedule.bounds(iteration, T)
             callbacks.progress(Progress(
