@@ -1304,6 +1304,27 @@ def test_cli_builds_the_tiny_model_and_edits_with_it(tmp_path, make_sphere_grid,
     assert "voxe: edit cancelled before its first step" in said and "--resume" not in said
 
 
+def test_cli_checkpoint_every_0_still_writes_one_where_ctrl_c_stops_the_edit_as_its_help_says(tmp_path, tiny_sd_path,
+                                                                                              make_sphere_grid, capsys):
+    """--checkpoint-every's help had said "0: only at the end", and a Ctrl-C after some steps wrote one there too
+    (the edit's checkpoint at a cancel), which the cancel's hint then named to --resume."""
+    from voxe_core.cli.common import Interrupt
+
+    make_sphere_grid(8).save(grid_file := tmp_path / "grid.safetensors")
+    out, asked = tmp_path / "out", []
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(Interrupt, "__call__", lambda self: asked.append(1) or len(asked) > 2)  # Ctrl-C after 2 steps
+        assert main(["edit", str(grid_file), "--out", str(out), "--prompt", "a dog", "--model", str(tiny_sd_path),
+                     "--render-size", "16", "--device", "cpu", "--quiet", "--offline", "--iterations", "5",
+                     "--preview-every", "0", "--checkpoint-every", "0"]) == 130
+    assert load_edit_checkpoint(out / "checkpoint.safetensors")[1]["iteration"] == 2
+    assert f"resume with --resume {out / 'checkpoint.safetensors'}" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["edit", "--help"])
+    said = " ".join(capsys.readouterr().out.split())
+    assert "(0: only at the end; Ctrl-C or SIGTERM writes one where it stops the edit, whatever this is)" in said
+
+
 def test_cli_says_the_regulariser_a_constant_grid_switches_off(tmp_path, tiny_sd_path, make_sphere_grid, capsys):
     """``voxe edit`` of an unfitted grid (constant density) prints what the edit's warning says, even with --quiet;
     of a fitted one, no warning."""

@@ -61,7 +61,8 @@ def add_parsers(commands, common) -> None:
     ed.add_argument("--autocast", choices=("bf16", "fp16"), default=None, help="run the guidance under autocast")
     ed.add_argument("--seed", type=seed, default=SEED)
     ed.add_argument("--checkpoint-every", type=non_negative_int, default=250,
-                    help="iterations between checkpoints (0: only at the end)")
+                    help="iterations between checkpoints (0: only at the end; Ctrl-C or SIGTERM writes one where "
+                         "it stops the edit, whatever this is)")
     ed.add_argument("--resume", type=Path, default=None, metavar="PATH", help="continue from this edit checkpoint")
     ed.add_argument("--preview-every", type=non_negative_int, default=PREVIEW_EVERY,
                     help="iterations between preview PNGs (0: none)")
