@@ -95,11 +95,23 @@ def test_early_stopping_evaluates_only_the_samples_in_front_of_the_stop():
 
 
 def test_saturated_densities_clamp_their_optical_depth_in_both():
-    """Densities of 10^4 per unit and more: each sample's optical depth is clamped (``MAX_SAMPLE_OPTICAL_DEPTH``),
-    which stops its gradient; the render is the first sample's colour in both."""
+    """Densities of 10^4 per unit and more, every other slice of vertices past float32's range (σ = inf): each
+    sample's optical depth is clamped (``MAX_SAMPLE_OPTICAL_DEPTH``), which stops its gradient; the render is the
+    first sample's colour in both, finite (an infinite depth in the rays' shared sum had made the rays after it
+    NaN)."""
     features = _field(10, 4, density=0.5)
     features[..., 0] = features[..., 0].abs() * 1e4 + 1e3
-    _assert_same_render(*_render_both(features, *_rays(20, 5), step_ratio=0.5, early_stop=0.0))
+    features[::2, ..., 0] = 1e38
+    origins, directions = _rays(20, 5)
+    packed, fused = _render_both(features, origins, directions, step_ratio=0.5, early_stop=0.0)
+    _assert_same_render(packed, fused)
+    grid = VoxelGrid(10, features=features)
+    (samples,) = grid.ray_samples(origins, unit_directions(directions), torch.full((20,), 0.5), 0.5)
+    first = samples.points[torch.searchsorted(samples.ray, torch.arange(20))]  # every ray enters the box
+    for out, grad in (packed, fused):
+        assert out.opacity.tolist() == [1.0] * 20
+        torch.testing.assert_close(out.rgb, torch.sigmoid(grid.interpolate(first)[:, 1:]), atol=1e-6, rtol=0)
+        assert not grad[:, 0].any() and bool(grad[:, 1:].isfinite().all()) and grad[:, 1:].any()
 
 
 def test_rays_from_inside_the_box_and_rays_that_are_none():
