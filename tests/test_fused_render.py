@@ -178,7 +178,11 @@ def test_a_density_of_exactly_zero_passes_no_gradient_through_the_relu():
     gradient is 0 there, on both paths (a sample there must not send the optical depth's gradient into it)."""
     features = _field(9, 12, density=0.6)
     features[:5, ..., 0] = 0.0
-    _assert_same_render(*_render_both(features, *_rays(16, 13), step_ratio=0.5, skip_empty=False))
+    packed, fused = _render_both(features, *_rays(16, 13), step_ratio=0.5, skip_empty=False)
+    _assert_same_render(packed, fused)
+    for _, grad in (packed, fused):  # the cells of x < 4 have no vertex of raw density other than 0
+        density_grad = grad.view(9, 9, 9, 4)[..., 0]
+        assert not density_grad[:4].any() and density_grad[5:].any()
 
 
 def test_a_nan_colour_where_nothing_is_dense_shows_in_the_render():
