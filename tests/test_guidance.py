@@ -144,6 +144,23 @@ def test_sds_gradient_reaches_the_image(guidance, t):
     assert float(diag["w_mean"]) == pytest.approx(1 - float(guidance.alphas_cumprod[t]), rel=1e-6)
 
 
+def test_encoded_renders_are_the_vaes_scaled_latents_of_the_renders_mapped_to_minus_one_to_one(guidance):
+    """Renders in [0, 1] reach the VAE resized to the model's resolution and mapped to [-1, 1], as Stable Diffusion
+    was trained; their latents are scaled by the VAE's ``scaling_factor`` (the posterior's mean, or its sample from
+    the generator given)."""
+    images = torch.rand(2, 3, 48, 48, generator=torch.Generator().manual_seed(4))
+    x = torch.nn.functional.interpolate(images, size=(guidance.resolution,) * 2, mode="bilinear",
+                                        align_corners=False) * 2 - 1
+    with torch.no_grad():
+        posterior = guidance.vae.encode(x).latent_dist
+        sampled = posterior.sample(generator=torch.Generator().manual_seed(5))
+    assert guidance.resolution != 48 and guidance.latent_shift == 0.0
+    torch.testing.assert_close(guidance.encode_images(images, sample=False), posterior.mean * guidance.latent_scale,
+                               rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(guidance.encode_images(images, torch.Generator().manual_seed(5)),
+                               sampled * guidance.latent_scale, rtol=1e-5, atol=1e-6)
+
+
 def test_sds_loss_is_reproducible_with_a_generator(guidance):
     emb = guidance.encode_prompts(["a render of a dog"])
     base = torch.rand(1, 3, 64, 64, generator=torch.Generator().manual_seed(2))
