@@ -966,6 +966,17 @@ def test_random_object_seeds_come_from_p_obj_above_p_e_else_the_top_fallback():
         RefineConfig(object_seed_rule="best")
 
 
+def test_top_object_seeds_are_the_highest_p_obj_above_one_half_lower_index_first():
+    """The paper's text: the ``object_seeds`` highest P_obj among P_obj > 1/2, ties to the lower index; a node of no
+    preference (P_obj = P_e = 1/2) is no seed, however few the others."""
+    p_o = np.array([0.5, 0.7, 0.9, 0.5, 0.7, 0.6, 0.1])
+    config = RefineConfig(object_seed_rule="top", object_seeds=3)
+    np.testing.assert_array_equal(object_seed_indices(1.0 - p_o, p_o, config), [2, 1, 4])
+    every = object_seed_indices(1.0 - p_o, p_o, dataclasses.replace(config, object_seeds=10))
+    np.testing.assert_array_equal(every, [2, 1, 4, 5])
+    assert object_seed_indices(1.0 - p_o, p_o, dataclasses.replace(config, object_seeds=0)).size == 0
+
+
 def test_the_default_cut_is_the_authors_code_but_for_the_seed_margin_and_seedless_pieces_and_recovers_two_blobs():
     assert all(getattr(RefineConfig(), k) == v for k, v in SERVICE_CUT.items())
     differs = {k for k, v in AUTHORS_CODE_CUT.items() if getattr(RefineConfig(), k) != v}
