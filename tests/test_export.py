@@ -683,6 +683,8 @@ def test_default_level_is_half_opacity_over_one_voxel(sphere_grid):
     level = default_mesh_level(sphere_grid)
     voxel = float(sphere_grid.voxel_size.min())
     assert 1 - math.exp(-level * voxel) == pytest.approx(0.5)
+    # over the smallest edge of a grid whose voxels are 0.25 x 0.5 x 1
+    assert default_mesh_level(VoxelGrid((9, 5, 3), (-1.0,) * 3, (1.0,) * 3)) == pytest.approx(math.log(2) / 0.25)
 
 
 def test_sphere_mesh_radius_colour_and_closure(sphere_grid):
