@@ -374,7 +374,7 @@ def test_build_prompt_prefix_and_view():
     assert build_prompt("a dog", "side") == "a render of a dog, side view"
     assert build_prompt("a dog", None, prefix=None) == "a dog"
     assert build_prompt("a dog", "back", prefix="a photo of") == "a photo of a dog, back view"
-    with pytest.raises(ValueError):
+    with pytest.raises(ValueError, match="^the edit prompt is empty$"):
         build_prompt("   ", None)
 
 

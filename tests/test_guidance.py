@@ -228,7 +228,7 @@ def test_sds_reports_the_share_of_non_finite_gradient_entries_it_zeroed(guidance
 
 def test_sds_rejects_out_of_range_timesteps(guidance):
     emb = guidance.encode_prompts(["a dog"])
-    with pytest.raises(ValueError):
+    with pytest.raises(ValueError, match=r"^timesteps must lie in \[0, 999\], got \[1000\]$"):
         guidance.sds_grad_on_latents(torch.zeros(1, 4, 16, 16), emb, torch.tensor([1000]))
 
 

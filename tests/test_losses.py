@@ -203,7 +203,7 @@ def test_autocast_bf16_inputs_compute_in_float32():
 
 
 def test_shape_mismatch_raises():
-    with pytest.raises(ValueError):
+    with pytest.raises(ValueError, match=r"^density shapes differ: initial \(3, 3\) vs edited \(9,\)$"):
         correlation_loss(torch.zeros(3, 3), torch.zeros(9))
 
 
@@ -236,7 +236,7 @@ def test_volumetric_and_image_losses():
     target[..., :2, :] = 1.0  # half the pixels differ by 0.5 one way, half the other way
     assert float(image_l1(render, target)) == pytest.approx(0.5)
     assert float(image_l2(render, target)) == pytest.approx(0.25)
-    with pytest.raises(ValueError):
+    with pytest.raises(ValueError, match=r"^render \(1, 3, 4, 4\) and target \(1, 3, 4, 2\) differ in shape$"):
         image_l1(render, target[..., :2])
 
 
@@ -247,7 +247,7 @@ def test_regulariser_kinds():
         regulariser_loss("image_l1", init, init)
     with pytest.raises(ValueError, match="unknown"):
         regulariser_loss("tv", init, init)
-    with pytest.raises(ValueError):
+    with pytest.raises(ValueError, match=r"^expected features \(\.\.\., 4\) \(density \+ RGB\), got \(3, 3, 3, 3\)$"):
         regulariser_loss("reg3d", init[..., :3], init[..., :3])
 
 

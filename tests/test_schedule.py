@@ -80,11 +80,11 @@ def test_sample_reproducible_and_scaled_by_T():
 
 
 def test_invalid_schedules_rejected():
-    with pytest.raises(ValueError):
+    with pytest.raises(ValueError, match=r"^need 0 <= t_min < floor <= k0 <= 1, got t_min=0\.02, floor=0\.01, k0=0\.98$"):
         TimestepSchedule(floor=0.01)
-    with pytest.raises(ValueError):
+    with pytest.raises(ValueError, match=r"^every must be >= 1, got 0$"):
         TimestepSchedule(every=0)
-    with pytest.raises(ValueError):
+    with pytest.raises(ValueError, match=r"^iteration must be >= 0, got -1$"):
         TimestepSchedule().max_fraction(-1)
 
 
