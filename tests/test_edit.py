@@ -1111,15 +1111,20 @@ def test_input_views_under_a_volumetric_regulariser_are_refused_naming_them(smal
 
 
 def test_reg3d_is_zero_for_identical_grids_then_grows(small_sphere):
+    """The loss is SDS + regulariser_weight · L_reg3D: checked where L_reg3D has grown (at its start, 0, any weight
+    gives the same total)."""
     reports = []
     edit(small_sphere, "a dog", FakeGuidance(), EditConfig(iterations=4, render_size=16), _collect(reports))
     assert abs(reports[0].losses["reg"]) < 1e-6
     assert reports[0].losses["total"] == pytest.approx(reports[0].losses["sds"] + 200 * reports[0].losses["reg"])
     # unopposed (weight 0) and with big steps, the fake SDS changes G_e's density and L_reg3D sees it
-    free = []
-    edit(small_sphere, "a dog", FakeGuidance(), EditConfig(iterations=4, render_size=16, lr=2.0, regulariser_weight=0.0),
-         _collect(free))
-    assert free[-1].losses["reg"] > 1e-4
+    for weight in (0.0, 3.0):
+        free = []
+        edit(small_sphere, "a dog", FakeGuidance(),
+             EditConfig(iterations=4, render_size=16, lr=2.0, regulariser_weight=weight), _collect(free))
+        losses = free[-1].losses
+        assert losses["reg"] > 1e-4
+        assert losses["total"] == pytest.approx(losses["sds"] + weight * losses["reg"], rel=1e-6, abs=1e-7)
 
 
 def test_a_regulariser_a_constant_initial_grid_switches_off_is_said_before_the_first_step(small_sphere):
