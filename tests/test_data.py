@@ -830,3 +830,14 @@ def test_bad_arguments_are_value_errors(tmp_path):
         with pytest.raises(ValueError) as err:
             load_scene(root, **kwargs)
         assert not isinstance(err.value, DatasetError)
+
+
+@pytest.mark.parametrize("index", [3, -4])
+def test_a_camera_index_out_of_range_names_the_index_and_the_count(index):
+    """``cameras[3]`` of three cameras had raised range()'s bare "range object index out of range"."""
+    from voxe_core.cameras import Cameras
+
+    cameras = Cameras.from_fov(torch.eye(4).expand(3, 4, 4), 0.7, 8, 8)
+    assert torch.equal(cameras[-3].c2w, cameras[0].c2w) and torch.equal(cameras[2].c2w, cameras[-1].c2w)
+    with pytest.raises(IndexError, match=rf"^camera {index} out of range: there are 3 cameras$"):
+        cameras[index]

@@ -69,7 +69,9 @@ class Cameras:
     def __getitem__(self, index) -> "Cameras":
         """The cameras at ``index`` (any tensor index); an int keeps one, counting from the end when negative."""
         if isinstance(index, int):
-            position = range(len(self))[index]  # IndexError out of range, as a list's
+            if not -len(self) <= index < len(self):
+                raise IndexError(f"camera {index} out of range: there are {len(self)} cameras")
+            position = index % len(self)
             index = slice(position, position + 1)
         return replace(
             self, c2w=self.c2w[index], fx=self.fx[index], fy=self.fy[index], cx=self.cx[index], cy=self.cy[index],
