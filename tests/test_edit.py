@@ -1330,6 +1330,34 @@ def test_cli_checkpoint_every_0_still_writes_one_where_ctrl_c_stops_the_edit_as_
     assert "(0: only at the end; Ctrl-C or SIGTERM writes one where it stops the edit, whatever this is)" in said
 
 
+def test_cli_edit_with_the_tiny_model_says_and_records_it_is_a_smoke_test(tmp_path, tiny_sd_path, make_sphere_grid,
+                                                                           capsys):
+    """``voxe edit --model`` a folder ``voxe build-tiny-model`` wrote said nothing of its random weights: the edit
+    passed for one. It says so once on stderr (even --quiet) and in edited.safetensors' header; a real-looking folder
+    without the tiny model's model_index.json mark, neither."""
+    import json
+
+    from voxe_core.gridfile import GRID_FORMAT_VERSION
+    from voxe_core.tensorio import load_tensors
+
+    real = shutil.copytree(tiny_sd_path, tmp_path / "real")
+    index = {**json.loads((real / "model_index.json").read_text()), "_name_or_path": "CompVis/stable-diffusion-v1-4"}
+    (real / "model_index.json").write_text(json.dumps(index))
+    (real / "README.md").unlink()
+    make_sphere_grid(8).save(tmp_path / "g.safetensors")
+    note = (f"{tiny_sd_path} is a random-weight smoke-test Stable Diffusion (voxe build-tiny-model): what is made with "
+            "it proves the plumbing only and says nothing about edit quality")
+    for model, said in ((tiny_sd_path, [f"voxe edit: SMOKE TEST: {note}"]), (real, [])):
+        capsys.readouterr()
+        assert main(["edit", str(tmp_path / "g.safetensors"), "--out", str(tmp_path / model.name), "--prompt", "a dog",
+                     "--model", str(model), "--render-size", "16", "--device", "cpu", "--quiet", "--offline",
+                     "--iterations", "1", "--preview-every", "0"]) == 0
+        assert [line for line in capsys.readouterr().err.splitlines() if "SMOKE" in line] == said
+        meta = load_tensors(tmp_path / model.name / "edited.safetensors", "voxel_grid", GRID_FORMAT_VERSION)[1]
+        assert meta.get("smoke_test") == (note if said else None)
+        assert load_grid(tmp_path / model.name / "edited.safetensors").resolution == (8, 8, 8)
+
+
 def test_cli_says_the_regulariser_a_constant_grid_switches_off(tmp_path, tiny_sd_path, make_sphere_grid, capsys):
     """``voxe edit`` of an unfitted grid (constant density) prints what the edit's warning says, even with --quiet;
     of a fitted one, no warning."""

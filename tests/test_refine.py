@@ -1721,6 +1721,39 @@ def test_cli_refine_records_every_setting_it_ran_with(tmp_path, tiny_model, make
     assert RefineConfig(**{**settings, "render": RenderConfig(**settings["render"])}).sigma == 0.25  # a config again
 
 
+def test_cli_refine_with_the_tiny_model_says_and_records_it_is_a_smoke_test(tmp_path, tiny_model, make_sphere_grid,
+                                                                             monkeypatch, capsys):
+    """``voxe refine --model`` a folder ``voxe build-tiny-model`` wrote said nothing of its random weights: the mask
+    passed for one. It says so once on stderr (even --quiet) and in refine.json's ``smoke_test``; a real-looking folder
+    without the tiny model's model_index.json mark, neither."""
+    import shutil
+
+    import voxe_core.refine.pipeline
+
+    def favouring_the_object(grid, *args, **kwargs):  # (a fit of one step from a constant seeds nothing)
+        edit_field = torch.full((*grid.resolution, 1), -5.0)
+        return edit_field, -edit_field
+
+    monkeypatch.setattr(voxe_core.refine.pipeline, "fit_attention_grids", favouring_the_object)
+    real = shutil.copytree(tiny_model, tmp_path / "real")
+    index = json.loads((real / "model_index.json").read_text())
+    (real / "model_index.json").write_text(json.dumps({**index, "_name_or_path": "CompVis/stable-diffusion-v1-4"}))
+    (real / "README.md").unlink()
+    make_sphere_grid(8).save(tmp_path / "grid.safetensors", dense=True)
+    note = (f"{tiny_model} is a random-weight smoke-test Stable Diffusion (voxe build-tiny-model): what is made with "
+            "it proves the plumbing only and says nothing about edit quality")
+    for model, said in ((Path(tiny_model), [f"voxe refine: SMOKE TEST: {note}"]), (real, [])):
+        capsys.readouterr()
+        assert main(["refine", str(tmp_path / "grid.safetensors"), "--initial", str(tmp_path / "grid.safetensors"),
+                     "--prompt", "a dog wearing a party hat", "--edit-words", "party hat",
+                     "--out", str(tmp_path / model.name), "--model", str(model), "--offline", "--device", "cpu",
+                     "--iterations", "1", "--render-size", "16", "--views", "1", "--preview-views", "0",
+                     "--quiet"]) == 0
+        assert [line for line in capsys.readouterr().err.splitlines() if "SMOKE" in line] == said
+        summary = json.loads((tmp_path / model.name / "refine.json").read_text())
+        assert summary["model"] == str(model) and summary.get("smoke_test") == (note if said else None)
+
+
 def test_cli_refine_smoke(tmp_path, tiny_model, make_sphere_grid):
     initial = make_sphere_grid(12)
     edited = initial.clone_grid()

@@ -163,6 +163,10 @@ TINY_MODEL = "tiny"
 """The name the service's model settings (``VOXE_SDS_MODEL``, ``VOXE_CLIP_MODEL``, ...) give the random-weight
 smoke-test models it builds in code: no hub id, and no folder the CLI reads (it had advised ``hf download tiny``)."""
 
+TINY_MODEL_NAME = "voxe-tiny-stable-diffusion (SMOKE-TEST MODEL, random weights)"
+"""The ``_name_or_path`` of the model_index.json of a folder ``voxe_core.tiny_sd`` wrote (every build has written it):
+what tells a folder holding its random-weight Stable Diffusion (``voxe_core.guidance.loading.smoke_test_model``)."""
+
 SMOKE_TEST_MARK = "voxe_smoke_test"
 """True in the config of ``voxe_core.tiny_eval``'s CLIP and on its Inception module: what tells an evaluation scoring
 with them, whatever their folder or file is called, that its numbers are a smoke test's

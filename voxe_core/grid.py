@@ -679,16 +679,17 @@ class VoxelGrid(torch.nn.Module):
         return {"backbone": self.kind, "activation": self.activation, "density_scale": self.density_scale,
                 "resolution": list(self.resolution)}
 
-    def save(self, path, dense: bool = False, margin: int = DEFAULT_MARGIN) -> None:
+    def save(self, path, dense: bool = False, margin: int = DEFAULT_MARGIN, notes: dict | None = None) -> None:
         """Write the grid file (``voxe_core.gridfile`` documents the format): sparse unless ``dense`` or not smaller.
 
         The sparse layout keeps the cells that can hold density (with ReLU: raw
         density above 0 at a corner, so a loaded grid renders identically with or
         without empty-space skipping; with softplus: ``occupancy()``'s cells, so
         identically where skipping is at the default threshold or above) plus
-        ``margin`` cells around them.
+        ``margin`` cells around them. ``notes``: header entries on what made the grid (``voxe edit``'s
+        ``smoke_test``), which loading passes over.
         """
-        tensors, meta = self.state_tensors(), {**self.header(), "layout": "dense"}
+        tensors, meta = self.state_tensors(), {**(notes or {}), **self.header(), "layout": "dense"}
         if not dense:
             # The cells kept, and the highest raw density those left out may all hold and stay so on loading: 0
             # under ReLU; else the one activating to the lowest skip density of any cell (a scene grid's

@@ -41,7 +41,9 @@ from pathlib import Path
 
 import torch
 
+from voxe_core.constants import TINY_MODEL_NAME
 from voxe_core.files import locked, partial_path
+from voxe_core.guidance.loading import smoke_test_model
 
 # Whole-word tokens of the tiny vocabulary. Anything else still tokenises
 # through the byte-level fallback (several sub-tokens per word).
@@ -58,8 +60,6 @@ TINY_VOCAB_WORDS: tuple[str, ...] = (
 _BOS = "<|startoftext|>"
 _EOS = "<|endoftext|>"
 _MAX_LENGTH = 77
-TINY_MODEL_NAME = "voxe-tiny-stable-diffusion (SMOKE-TEST MODEL, random weights)"
-"""The ``_name_or_path`` of a tiny model's model_index.json: what tells a folder holding one (rebuilt in place)."""
 
 
 def _bytes_to_unicode() -> dict[int, str]:
@@ -368,10 +368,5 @@ def _write_tiny_stable_diffusion(root: Path, seed: int) -> None:
 
 
 def _tiny_model(root: Path) -> bool:
-    """Whether the folder ``root`` holds a tiny model :func:`build_tiny_stable_diffusion` wrote (its model_index.json
-    names it :data:`TINY_MODEL_NAME`)."""
-    try:
-        index = json.loads((root / "model_index.json").read_text(encoding="utf-8"))
-    except (OSError, ValueError):
-        return False
-    return isinstance(index, dict) and index.get("_name_or_path") == TINY_MODEL_NAME
+    """Whether the folder ``root`` holds a tiny model :func:`build_tiny_stable_diffusion` wrote (rebuilt in place)."""
+    return smoke_test_model(str(root))

@@ -605,6 +605,18 @@ def load_guidance(args: argparse.Namespace, model: str, cuda_graphs: bool | None
         return None
 
 
+def say_smoke_test(args: argparse.Namespace, model: str) -> str | None:
+    """For a ``model`` folder ``voxe build-tiny-model`` wrote (random weights), the note the run records in what it
+    writes, said once on stderr as it starts; None for any other model."""
+    from voxe_core.guidance.loading import SMOKE_TEST_MODEL_NOTE, smoke_test_model
+
+    if not smoke_test_model(model):
+        return None
+    note = f"{model} is {SMOKE_TEST_MODEL_NOTE}"
+    print(f"voxe {args.command}: SMOKE TEST: {note}", file=sys.stderr)
+    return note
+
+
 def view_params(args: argparse.Namespace) -> dict:
     """The job parameters of the dataset options of ``add_view_arguments``."""
     return {"downsample": args.downsample, "resample": args.resample, "max_images": args.max_images}

@@ -14,7 +14,8 @@ from pathlib import Path
 from voxe_core import constants as paper
 from voxe_core.cli.common import (
     EXIT_INTERRUPTED, EXIT_USAGE, add_grid_output_arguments, add_model_arguments, add_view_arguments, check_device, finite_float, load_guidance,
-    load_views, non_negative_int, positive_int, positive_int_at_most, remove_earlier_outputs, run_stage, said_by_option, seed, view_options_given, writable_folder,
+    load_views, non_negative_int, positive_int, positive_int_at_most, remove_earlier_outputs, run_stage, said_by_option, say_smoke_test, seed, view_options_given,
+    writable_folder,
 )
 from voxe_core.guidance.prompts import check_no_special_tokens, check_prompt_length, names_something
 from voxe_core.presets import BATCH_SIZE, EDIT_SCHEDULES, PREVIEW_EVERY, SEED, TIMESTEP_SCHEDULES, edit_config
@@ -125,6 +126,7 @@ def cmd_edit(args) -> int:
     # views), had waited for the model's load.
     if args.resume is not None:
         check_resume(args.resume, grid, args.prompt, config, model, views)
+    smoke_test = say_smoke_test(args, model)
     guidance = load_guidance(args, model, cuda_graphs=None if args.cuda_graphs else False,
                              compile_encoder=None if args.compile_encoder else False)
     if guidance is None:
@@ -156,7 +158,8 @@ def cmd_edit(args) -> int:
         hint = f"; resume with --resume {checkpoint}" if checkpoint.is_file() else " before its first step"
         print(f"voxe: edit cancelled{hint}", file=sys.stderr)
         return EXIT_INTERRUPTED
-    edited.save(args.out / "edited.safetensors", dense=args.dense)
+    edited.save(args.out / "edited.safetensors", dense=args.dense,
+                notes={"smoke_test": smoke_test} if smoke_test else None)
     print(f"wrote {args.out / 'edited.safetensors'} and {checkpoint}")
     return 0
 

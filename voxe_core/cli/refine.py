@@ -15,7 +15,8 @@ from pathlib import Path
 from voxe_core import constants as paper
 from voxe_core.cli.common import (
     EXIT_INTERRUPTED, EXIT_USAGE, add_grid_output_arguments, add_model_arguments, check_device, finite_float,
-    load_guidance, move_staged, non_negative_int, positive_int, positive_int_at_most, remove_earlier_outputs, run_stage, said_by_option, seed, staging_folder,
+    load_guidance, move_staged, non_negative_int, positive_int, positive_int_at_most, remove_earlier_outputs, run_stage, said_by_option, say_smoke_test, seed,
+    staging_folder,
     writable_file, writable_folder, write_json,
 )
 from voxe_core.guidance.prompts import (check_edit_words_name_an_edit, check_edit_words_read,
@@ -122,6 +123,7 @@ def cmd_refine(args) -> int:
     check_compatible(initial, edited)
     out = args.out
     with staging_folder(out, "refine") as staging:  # (a run that failed part way had left a mix of two runs' files)
+        smoke_test = say_smoke_test(args, model)
         guidance = load_guidance(args, model)
         if guidance is None:
             return EXIT_USAGE
@@ -138,7 +140,7 @@ def cmd_refine(args) -> int:
             print("voxe: refinement cancelled, nothing written", file=sys.stderr)
             return EXIT_INTERRUPTED
         stats = dataclasses.asdict(result.stats)
-        _write_outputs(staging, result, words, model, config, stats, initial, edited, args)
+        _write_outputs(staging, result, words, model, config, stats, initial, edited, args, smoke_test)
         _move_outputs(staging, out)
     for note in result.stats.notes:
         print(f"voxe refine: note: {note}", file=sys.stderr)
@@ -150,9 +152,10 @@ def cmd_refine(args) -> int:
 
 
 def _write_outputs(folder: Path, result, words: list[str], model: str, config, stats: dict, initial, edited,
-                   args) -> None:
+                   args, smoke_test: str | None) -> None:
     """Write the refinement's files into ``folder`` (the staging): the grids, the previews (each view saved as it
-    is rendered: all five sets had been held first), then refine.json."""
+    is rendered: all five sets had been held first), then refine.json (``smoke_test``: its note, where the model was
+    the random-weight tiny one)."""
     import torch
 
     from voxe_core.export import save_png, turntable_cameras
@@ -184,6 +187,8 @@ def _write_outputs(folder: Path, result, words: list[str], model: str, config, s
     summary = {"prompt": result.info["prompt"], "edit_words": words, "model": model,
                "settings": config_recipe(config, ()),  # every one the run used (--sigma, --lift-start, ... had gone unsaid)
                "graph_cut": stats, "masked_voxels": int(result.mask.sum())}
+    if smoke_test:
+        summary["smoke_test"] = smoke_test
     write_json(folder / "refine.json", summary)
 
 

@@ -10,7 +10,7 @@ import json
 import os
 from typing import Callable
 
-from voxe_core.constants import TINY_MODEL
+from voxe_core.constants import TINY_MODEL, TINY_MODEL_NAME
 
 DIFFUSERS_LAYOUT = "model_index.json, unet/, vae/, text_encoder/, tokenizer/, scheduler/"
 DIFFUSERS_FILES = ("model_index.json", "unet/config.json", "vae/config.json", "text_encoder/config.json",
@@ -100,6 +100,23 @@ def tiny_model_note(build: str) -> str:
     return (f"'{TINY_MODEL}' is the service's name for its random-weight smoke-test model, which it builds in code; "
             f"it is no hub id, and there is no folder {TINY_MODEL!r} here: write one with {build} and pass that folder "
             "(it proves the plumbing only, never quality)")
+
+
+SMOKE_TEST_MODEL_NOTE = ("a random-weight smoke-test Stable Diffusion (voxe build-tiny-model): what is made with it "
+                         "proves the plumbing only and says nothing about edit quality")
+"""What a run with a folder :func:`smoke_test_model` recognises says of it, at its start and in what it writes."""
+
+
+def smoke_test_model(model: str) -> bool:
+    """Whether ``model`` is a folder ``voxe_core.tiny_sd`` wrote (random weights): its model_index.json names it
+    :data:`~voxe_core.constants.TINY_MODEL_NAME`, as every build's has. Read without torch, before the model loads: a
+    run with it had said nothing of its results being noise."""
+    try:
+        with open(os.path.join(os.path.expanduser(model), "model_index.json"), encoding="utf-8") as file:
+            index = json.load(file)
+    except (OSError, ValueError):
+        return False
+    return isinstance(index, dict) and index.get("_name_or_path") == TINY_MODEL_NAME
 
 
 def local_path(model: str) -> str | None:
