@@ -2748,6 +2748,37 @@ def test_the_voxelize_route_tells_its_job_what_the_mesh_loads_without_unless_the
     assert voxelized(16) == [("reconstruct", said)]
 
 
+def test_a_voxelize_reload_that_fails_after_a_warning_still_tells_the_job_the_warning(client, root, monkeypatch):
+    """The voxelize route's reload of a scene's mesh that raised a warning (an OBJ's .mtl not sent) and then failed
+    had dropped the warning with the load: the job failed without being told what may explain it, where a failed
+    ingest keeps its. The job is told it (a ``warning`` event of stage reconstruct) and fails."""
+    from sqlalchemy import update
+
+    from voxe_core.mesh_input import MeshError
+    from voxe_service.db import session_scope
+    from voxe_service.models import Scene
+    from worker import ingest as worker_ingest, tasks
+
+    scene = _upload_an_obj_naming_an_mtl_not_sent(client, monkeypatch)
+    assert ingest(scene["id"])["state"] == "ready"
+    with session_scope() as session:  # as a scene ingested before its warnings were kept: no job is told them
+        session.execute(update(Scene).where(Scene.id == scene["id"]).values(warnings=None))
+
+    def refused(mesh, shading):  # the load fails once the mesh loaded without its .mtl (a later worker's rule, say)
+        raise MeshError("m.obj: refused on reload")
+
+    monkeypatch.setattr(worker_ingest, "shade_mesh", refused)
+    job = client.post("/v1/jobs", json={"scene_id": scene["id"], "prompt": "a cube", "mode": "global",
+                                        "params": {"reconstruction": {"resolution": 16}}}).json()
+    tasks.reconstruct_task.apply(args=(job["id"],))
+    done = client.get(f"/v1/jobs/{job['id']}").json()
+    assert done["state"] == "failed" and "m.obj: refused on reload" in done["error"], done
+    events = client.get(f"/v1/jobs/{job['id']}/events").json()
+    assert [(e["stage"], e["detail"]) for e in events if e["kind"] == "warning"] == [
+        ("reconstruct", "m.obj: the material library its mtllib names, 'model.mtl', is not found beside it; the mesh "
+                        "loads without its materials")]
+
+
 def test_a_ply_texture_unread_is_told_to_a_job_once_in_the_same_words_at_each_load(client, root, monkeypatch):
     """A PLY whose TextureFile names a file of its folder that is no image: Pillow named the bytes trimesh handed it
     by their memory address ("cannot identify image file <_io.BytesIO object at 0x7f...>"), a new one at each load,

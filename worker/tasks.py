@@ -524,15 +524,18 @@ def _voxelize(job: Job, rec, settings, storage):
     """Route (b): the mesh scene's uploaded mesh written straight into G_i at the reconstruction's final resolution.
     What the mesh loads without is a ``warning`` event of the stage, as the ingest's are (it had been said in the
     worker's log alone), unless the scene's kept warnings told the job already (at its creation, or its ingest's end):
-    a scene ingested before they were kept (migration 0022) tells none."""
+    a scene ingested before they were kept (migration 0022) tells none. Those said before a load that fails too (as a
+    failed ingest keeps its: they may be why)."""
     from voxe_core.mesh_input import VoxelizeConfig, voxelize
 
     scene, loaded_without = job_scene(job), []
-    with runtime.scene_dataset(scene, settings, storage) as dataset:
-        mesh = load_stored_mesh_telling(dataset, loaded_without)
-    for text in loaded_without:
-        if text not in (scene.warnings or ()):
-            runtime.record_warning(job.id, "reconstruct", text)
+    try:
+        with runtime.scene_dataset(scene, settings, storage) as dataset:
+            mesh = load_stored_mesh_telling(dataset, loaded_without)
+    finally:
+        for text in loaded_without:
+            if text not in (scene.warnings or ()):
+                runtime.record_warning(job.id, "reconstruct", text)
     config = reconstruct_config(rec.params, settings.checkpoint_every)
     return voxelize(mesh, VoxelizeConfig(resolution=config.resolutions[-1], bbox_min=config.bbox_min,
                                          bbox_max=config.bbox_max, seed=rec.params["seed"]))
