@@ -283,6 +283,40 @@ def test_a_colmap_model_listing_more_images_than_the_upload_holds_is_refused_bef
                                f"more than the {files} files in the dataset folder: each image needs a file of its own")
 
 
+@pytest.mark.parametrize("binary", [True, False])
+def test_a_colmap_model_listing_more_cameras_than_the_upload_holds_is_refused_before_reading_them(tmp_path, binary):
+    """A cameras file is bounded by its size alone: 1,000,000 valid cameras (56 MB of cameras.bin) beside 3 images had
+    been parsed in 8.7 s and 450 MB before anything was refused. Each camera is one image's or shared, so a count past
+    the files the upload holds is refused before any camera is read, naming the file and the count."""
+    from api.uploads import UploadError, check_dataset
+    from captures import pose_at, square_capture, write_colmap_model
+
+    capture = square_capture(tmp_path)
+    model = write_colmap_model(capture / "sparse" / "0", [("PINHOLE", 16, 12, [12.0, 12.0, 8.0, 6.0])],
+                               [(f"{i}.png", 0, pose_at(i)) for i in range(3)], binary)
+    count = 100_000
+    if binary:  # (camera id, PINHOLE, 16 x 12, fx fy cx cy) each
+        (model / "cameras.bin").write_bytes(struct.pack("<Q", count) + b"".join(
+            struct.pack("<iiQQ4d", i, 1, 16, 12, 12.0, 12.0, 8.0, 6.0) for i in range(count)))
+    else:
+        (model / "cameras.txt").write_text("# a comment\n" + "".join(f"{i} PINHOLE 16 12 12 12 8 6\n\n"
+                                                                      for i in range(count)))
+    files = sum(1 for p in capture.rglob("*") if p.is_file())
+    with pytest.raises(UploadError) as info:
+        check_dataset(capture, capture, 1)
+    assert str(info.value) == (f"invalid dataset: sparse/0/cameras.{'bin' if binary else 'txt'}: lists 100,000 "
+                               f"cameras, more than the {files} files in the dataset folder: each camera is one "
+                               "image's or shared by several, so there are never more cameras than images")
+    # as many cameras as files is no damage of its own: the model is read (its images then found in the cameras)
+    few = files
+    if binary:
+        (model / "cameras.bin").write_bytes(struct.pack("<Q", few) + b"".join(
+            struct.pack("<iiQQ4d", i, 1, 16, 12, 12.0, 12.0, 8.0, 6.0) for i in range(few)))
+    else:
+        (model / "cameras.txt").write_text("".join(f"{i} PINHOLE 16 12 12 12 8 6\n" for i in range(few)))
+    assert check_dataset(capture, capture, 1)[:2] == ("colmap", 3)
+
+
 def test_a_transforms_json_longer_than_the_uploads_files_explain_is_refused_unread(client, root):  # noqa: F811
     """A json is read whole before its frames are counted: 36 MB of frames (a few hundred kB deflated) beside three
     images had held the upload's check 9 s, parsed twice, before "lists ... frames, more than the 4 files"."""
