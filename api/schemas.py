@@ -447,7 +447,8 @@ class SceneOut(BaseModel):
         description="what its processing loaded the upload without (a mesh's .mtl its OBJ names not sent, its PLY's "
         "TextureFile unread: the mesh loads grey), each also a warning event (stage ingest) of every edit job on the "
         "scene, whether created before or after it was ready; [] for none; null while processing, and for scenes "
-        "processed before it was recorded (not known). A failed scene keeps those said before it failed (null where "
+        "processed before it was recorded (not known: an edit job created on such a mesh scene is told so, a warning "
+        "event of stage ingest). A failed scene keeps those said before it failed (null where "
         "it failed before its upload was loaded)")
     size_bytes: int = Field(description="bytes stored (0 once failed: a failed upload is not kept)")
     sha256: str

@@ -159,7 +159,7 @@ def add_jobs(*, session: Session, key: ApiKey, settings: Settings, jobs: list[Jo
     The scenes' states are read after the jobs' rows are written, under a lock on each scene's
     row, so an ingest finishing meanwhile either sees these jobs or is seen as done: jobs on a
     ready scene are returned to be sent (422 for one its backbone cannot take: its ingest may have
-    decided since the submission looked), each edit told the scene's ``warnings`` (as its ingest told
+    decided since the submission looked), each edit told the scene's ``warnings`` (``told_warnings``; as its ingest told
     the jobs waiting for it), jobs on a processing one are left for its ingest, and a
     scene that failed meanwhile refuses them all (409).
     """
@@ -183,7 +183,7 @@ def add_jobs(*, session: Session, key: ApiKey, settings: Settings, jobs: list[Jo
             if (scene := lock_scene(session, scene_id)) is None:
                 raise scene_deleted(jobs)
             refuse_unless_usable(scene)
-            states[scene_id], warnings[scene_id] = scene.state, scene.warnings or []
+            states[scene_id], warnings[scene_id] = scene.state, told_warnings(scene)
             for job in jobs:  # (its ingest may have decided since usable_scene read it processing)
                 if job.scene_id == scene_id and job.mode != EVALUATE:
                     refuse_unfit(scene, job.reconstruction.params)
@@ -202,6 +202,18 @@ def add_jobs(*, session: Session, key: ApiKey, settings: Settings, jobs: list[Jo
         session.rollback()
         raise
     return to_send
+
+
+def told_warnings(scene: Scene) -> list[str]:
+    """What a job created on the ready ``scene`` is told of its ingest: its ``warnings``; for a mesh scene processed
+    before they were kept (migration 0022: NULL), that they are not known. Its jobs had been told nothing, which reads
+    as none, and one reusing a fit never reloads the mesh to say them."""
+    if scene.warnings is None and scene.format == MESH_FORMAT:
+        return [f"scene {scene.id} was processed before its warnings were kept: whether its mesh loads without "
+                "something its files name (an OBJ's .mtl not sent, a PLY's TextureFile unread: the mesh loads grey) "
+                "is not known; a fit by the voxelize route says it as it loads the mesh, a fit reused says nothing "
+                "(upload the mesh again to be told)"]
+    return scene.warnings or []
 
 
 def last_sent(jobs: list[Job], to_send: list[Job]) -> Job:
