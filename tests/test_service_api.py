@@ -2779,6 +2779,33 @@ def test_a_voxelize_reload_that_fails_after_a_warning_still_tells_the_job_the_wa
                         "loads without its materials")]
 
 
+def test_a_voxelize_reload_refusing_the_mesh_names_its_file_as_uploaded_as_the_ingest_does(client, root, monkeypatch):
+    """A mesh this version refuses in a scene an older version's ingest let in fails the voxelize route's reload; its
+    MeshError named the file as the worker keeps it ("mesh.obj: every triangle has zero area ...") where the ingest
+    names it as uploaded ("m.obj: ...", without the worker's scratch path). The job's error names it as uploaded."""
+    import contextlib
+
+    from worker import runtime, tasks
+
+    scene = _upload_an_obj_naming_an_mtl_not_sent(client, monkeypatch)
+    assert ingest(scene["id"])["state"] == "ready"
+    unpacked = runtime.scene_dataset
+
+    @contextlib.contextmanager
+    def as_an_older_ingest_let_it_in(*args):  # its three vertices on a line
+        with unpacked(*args) as dataset:
+            (dataset / "mesh" / "mesh.obj").write_text("mtllib model.mtl\nv 0 0 0\nv 1 0 0\nv 2 0 0\nf 1 2 3\n")
+            yield dataset
+
+    monkeypatch.setattr(runtime, "scene_dataset", as_an_older_ingest_let_it_in)
+    job = client.post("/v1/jobs", json={"scene_id": scene["id"], "prompt": "a cube", "mode": "global",
+                                        "params": {"reconstruction": {"resolution": 16}}}).json()
+    tasks.reconstruct_task.apply(args=(job["id"],))
+    done = client.get(f"/v1/jobs/{job['id']}").json()
+    said = "MeshError: m.obj: every triangle has zero area (repeated or collinear vertices); the mesh has no surface"
+    assert (done["state"], done["error"], done["reconstruction"]["error"]) == ("failed", f"reconstruct: {said}", said)
+
+
 def test_a_ply_texture_unread_is_told_to_a_job_once_in_the_same_words_at_each_load(client, root, monkeypatch):
     """A PLY whose TextureFile names a file of its folder that is no image: Pillow named the bytes trimesh handed it
     by their memory address ("cannot identify image file <_io.BytesIO object at 0x7f...>"), a new one at each load,

@@ -73,13 +73,16 @@ def load_stored_mesh(dataset: Path):
 def load_stored_mesh_telling(dataset: Path, told: list[str]):
     """:func:`load_stored_mesh`'s mesh; what it loaded without, its ``MeshWarning``s (an OBJ's .mtl not sent, which
     had been said in the worker's log alone), appended to ``told``, files named as uploaded, without the worker's
-    scratch path: those said before a ``MeshError`` too (a failed ingest keeps them: they may be why). Any other
-    warning is shown as it would have been (the worker's log): recorded with them, it had been dropped unsaid."""
+    scratch path: those said before a ``MeshError`` too (a failed ingest keeps them: they may be why), which names
+    them so as well (the voxelize route's reload had said "mesh.obj", the name the worker keeps). Any other warning
+    is shown as it would have been (the worker's log): recorded with them, it had been dropped unsaid."""
     kept = dataset / datasets.MESH_FOLDER
     try:
         with warnings.catch_warnings(record=True) as said:
             warnings.simplefilter("always", MeshWarning)
             return load_stored_mesh(dataset)
+    except MeshError as exc:  # (Pillow's messages carry the worker's scratch path)
+        raise MeshError(_as_uploaded(_relative_message(exc, kept), kept)) from None
     finally:
         for other in said:
             if other.category is not MeshWarning:
@@ -90,11 +93,10 @@ def load_stored_mesh_telling(dataset: Path, told: list[str]):
 def render_mesh(root: Path, told: list[str]) -> None:
     """Render the mesh kept in ``root/mesh/`` into a NeRF-synthetic dataset in ``root`` (mesh input route (a)); what
     it loaded without appended to ``told`` (:func:`load_stored_mesh_telling`)."""
-    kept = root / datasets.MESH_FOLDER
     try:
         mesh = load_stored_mesh_telling(root, told)
-    except MeshError as exc:  # named as uploaded, without the worker's scratch path (Pillow's messages carry it)
-        raise IngestError(f"invalid mesh: {_as_uploaded(_relative_message(exc, kept), kept)}") from None
+    except MeshError as exc:  # (named as uploaded)
+        raise IngestError(f"invalid mesh: {exc}") from None
     write_mesh_dataset(mesh, root, datasets.MESH_VIEWS, datasets.MESH_VIEW_SIZE)
 
 
