@@ -3026,6 +3026,108 @@ def test_voxe_download_broken_off_goes_on_from_the_service_where_it_stopped(api,
     assert sent == [(f"bytes={kept}-", 206)] and (out / "grid.npz").read_bytes() == data and not part.exists()
 
 
+@pytest.mark.parametrize("cut", [False, True], ids=["before-its-first-byte", "before-its-resume"])
+def test_a_download_of_an_artifact_replaced_since_its_listing_lands_the_new_version_checked(cut, api, tmp_path,
+                                                                                            monkeypatch):
+    """Against the API app: preview.png republished (a running job's next stage) after ``download()`` read the
+    listing, before its GET or before the GET resuming it: the service served the new version whole (no If-Range,
+    or one naming the old ETag), and checked against the old listing it failed as a body "past the 500000 bytes the
+    artifact is listed with" (a larger version; a broken proxy's or hostile service's, the message says) or as bytes
+    whose sha256 is not the listed one, as if they had come corrupted (``voxe download`` of a running job, as it
+    allows, met it). The answer's ETag says which version it is: the listing is read again and
+    the new version lands, checked against it, no part file left."""
+    import hashlib
+
+    import voxe_client.client as client_module
+    from worker.runtime import publish_artifact
+
+    url, _ = api
+    (tmp_path / "plane.obj").write_text(PLANE_OBJ)
+    with Client(url) as client:
+        job = client.create_job(client.upload_scene(tmp_path / "plane.obj")["id"], "a plane of gold")
+    old, new = tmp_path / "old.png", tmp_path / "new.png"
+    old.write_bytes(b"A" * 500_000)
+    new.write_bytes(b"B" * 600_000)
+    publish_artifact(job["id"], "preview.png", old, "preview")
+    sent = []
+
+    class Republishing(httpx.HTTPTransport):
+        def handle_request(self, request: httpx.Request) -> httpx.Response:
+            if request.url.path.endswith("/preview.png") and len(sent) == cut:
+                publish_artifact(job["id"], "preview.png", new, "preview")
+            response = super().handle_request(request)
+            if request.url.path.endswith("/preview.png"):
+                sent.append((request.headers.get("range"), response.status_code))
+                if cut and len(sent) == 1:
+                    response.stream = _CutStream(response.stream, 300_000)
+            return response
+
+    monkeypatch.setattr(client_module.time, "sleep", lambda _s: None)
+    with Client(url, transport=Republishing()) as client:
+        landed = client.download(job["id"], "preview.png", tmp_path / "out" / "preview.png")
+    assert landed.read_bytes() == new.read_bytes()
+    assert hashlib.sha256(landed.read_bytes()).hexdigest() == hashlib.sha256(new.read_bytes()).hexdigest()
+    # the new version answered whole (to its If-Range too), then once more, asked as the new listing names it
+    assert sent == ([(None, 200), ("bytes=300000-", 200), (None, 200)] if cut else [(None, 200), (None, 200)])
+    assert sorted(path.name for path in (tmp_path / "out").iterdir()) == ["preview.png"]  # no part file left
+
+
+def test_a_download_of_an_artifact_replaced_each_time_it_is_listed_says_so_and_keeps_nothing(api, tmp_path):
+    """One republished before each of its GETs (faster than it downloads) fails after :data:`REPLACED_TRIES`
+    listings, saying it was replaced, no part file left."""
+    from voxe_client.client import REPLACED_TRIES
+    from worker.runtime import publish_artifact
+
+    url, _ = api
+    (tmp_path / "plane.obj").write_text(PLANE_OBJ)
+    with Client(url) as client:
+        job = client.create_job(client.upload_scene(tmp_path / "plane.obj")["id"], "a plane of gold")
+    version = tmp_path / "version.png"
+    version.write_bytes(b"0" * 1000)
+    publish_artifact(job["id"], "preview.png", version, "preview")
+    sent = []
+
+    class Republishing(httpx.HTTPTransport):
+        def handle_request(self, request: httpx.Request) -> httpx.Response:
+            if request.url.path.endswith("/preview.png"):
+                sent.append(request.headers.get("range"))
+                version.write_bytes(str(len(sent)).encode() * 1000)
+                publish_artifact(job["id"], "preview.png", version, "preview")
+            return super().handle_request(request)
+
+    with Client(url, transport=Republishing()) as client, pytest.raises(
+            ServiceError, match=f"answered 200 with ETag .*, not the listed sha256 [0-9a-f]{{64}}: the artifact was "
+                                f"replaced {REPLACED_TRIES} times as it downloaded; nothing kept"):
+        client.download(job["id"], "preview.png", tmp_path / "out" / "preview.png")
+    assert sent == [None] * REPLACED_TRIES and list((tmp_path / "out").iterdir()) == []
+
+
+def test_a_download_through_a_proxy_rewriting_etags_lands_checked_by_its_bytes(api, tmp_path):
+    """A proxy answering with ETags of its own: the listing read again still names the version asked for, so the
+    ETag says no version and the bytes' check decides (the download lands, one whole GET more)."""
+    url, _ = api
+    (tmp_path / "plane.obj").write_text(PLANE_OBJ)
+    with Client(url) as client:
+        job = client.create_job(client.upload_scene(tmp_path / "plane.obj")["id"], "a plane of gold")
+    from worker.runtime import publish_artifact
+
+    (tmp_path / "preview.png").write_bytes(b"P" * 70_000)
+    publish_artifact(job["id"], "preview.png", tmp_path / "preview.png", "preview")
+    sent = []
+
+    class Rewriting(httpx.HTTPTransport):
+        def handle_request(self, request: httpx.Request) -> httpx.Response:
+            response = super().handle_request(request)
+            if request.url.path.endswith("/preview.png"):
+                sent.append((request.headers.get("range"), response.status_code))
+                response.headers["etag"] = '"proxy-1"'
+            return response
+
+    with Client(url, transport=Rewriting()) as client:
+        landed = client.download(job["id"], "preview.png", tmp_path / "out" / "preview.png")
+    assert landed.read_bytes() == b"P" * 70_000 and sent == [(None, 200), (None, 200)]
+
+
 def test_an_empty_webhook_url_is_sent_and_refused_not_dropped(api, tmp_path, capsys):
     """``voxe submit --webhook-url "$HOOK"`` with HOOK unset had made the job without a webhook, exit 0: an empty
     value was taken for none given. The service refuses it, naming the field."""

@@ -120,6 +120,20 @@ class ServiceError(Exception):
         return isinstance(self, ServiceUnreachable) or (self.status or 0) >= 500
 
 
+class _ArtifactReplaced(ServiceError):
+    """A download answered with another version of the artifact than the one listed with SHA-256 ``listed`` (its
+    ETag): replaced since the listing was read."""
+
+    def __init__(self, message: str, status: int, listed: str):
+        super().__init__(message, status)
+        self.listed = listed
+
+
+REPLACED_TRIES = 3
+"""The listings a download reads, each followed by a download of the version it names, before an artifact replaced
+each time as it downloaded (a preview republished faster than it downloads) is the error."""
+
+
 class NotAServiceURL(ValueError):
     """A base URL the client refuses (no http(s) scheme or host, a password, a query, a bad port): ``voxe`` names its
     --api option with it."""
@@ -678,7 +692,10 @@ class Client:
         one kept (a run stopped before its rename) without a request, one whose check fails having gone on from an
         earlier call's bytes (not a head of the artifact) fetched whole once more, and a 416 to their Range (no head of
         it either) fetched whole, once (a 416 to bytes this call fetched is the error). A mismatch then is a
-        ServiceError and deletes them.
+        ServiceError and deletes them. An answer whose ETag names another version than the listed one (the artifact
+        replaced since the listing was read: a running job's preview.png republished) has the listing read again and
+        that version downloaded, up to :data:`REPLACED_TRIES` listings (it had been checked against the old listing
+        and failed, said as bytes corrupted or running past the listed size).
         """
         if name in ("", ".", "..") or any(c in name for c in "/\\\0"):  # it names a file inside dest's folder only
             raise ServiceError(f"artifact name {name!r} of job {job_id} is not a plain file name; nothing written")
@@ -690,11 +707,25 @@ class Client:
         if Path(dest).is_dir():  # (the whole artifact had been fetched, then its rename failed naming the part file)
             raise IsADirectoryError(f"cannot download {name} of job {job_id} to {dest}: it is a folder; nothing "
                                     "downloaded")
+        unmatched = None
+        for listing in range(1, REPLACED_TRIES + 1):
+            try:
+                return self._download_listed(job_id, name, Path(dest), unmatched)
+            except _ArtifactReplaced as replaced:
+                if listing == REPLACED_TRIES:
+                    raise
+                unmatched = replaced.listed
+
+    def _download_listed(self, job_id: str, name: str, dest: Path, unmatched: str | None = None) -> Path:
+        """:meth:`download` of the version of the artifact the job's listing names now; _ArtifactReplaced when the
+        service answers with another's ETag. Not when the listing still names ``unmatched``, the SHA-256 an ETag did
+        not match before: the listing unchanged, a proxy's ETag (one rewriting them) says no version; the bytes'
+        check does."""
         listed = {a["name"]: a for a in self.artifacts(job_id)}
         if name not in listed:
             raise ServiceError(f"job {job_id} has no artifact {name!r}; it has {', '.join(sorted(listed)) or 'none'}",
                                404)
-        expected, dest = listed[name], Path(dest)
+        expected = listed[name]
         if not SHA256_HEX.fullmatch(str(expected.get("sha256"))):  # (it names the part file)
             raise ServiceError(f"artifact {name!r} of job {job_id} is listed with sha256 {expected.get('sha256')!r}, "
                                "not a SHA-256; nothing written")
@@ -713,7 +744,7 @@ class Client:
             try:
                 earlier = out.seek(0, os.SEEK_END)  # bytes an earlier call kept
                 while True:
-                    if not self._fill_part(out, path, expected, what, partial):
+                    if not self._fill_part(out, path, expected, what, partial, expected["sha256"] != unmatched):
                         earlier = 0  # started over: none of them is checked now
                     size, sha256 = _size_and_sha256(out)
                     if (size, sha256) == (expected["size"], expected["sha256"]):
@@ -739,13 +770,15 @@ class Client:
                     partial.unlink(missing_ok=True)
         return dest
 
-    def _fill_part(self, out: BinaryIO, path: str, expected: dict, what: str, partial: Path) -> bool:
+    def _fill_part(self, out: BinaryIO, path: str, expected: dict, what: str, partial: Path,
+                   by_etag: bool = True) -> bool:
         """Append to ``out`` (the part file, open to append) the artifact at ``path`` from the bytes it holds (none
         or a head of it, the listing ``expected`` says its size), going on where a broken connection stopped (see
         :meth:`download`); whether the bytes it held at the start are kept (not started over: the service sent the
         whole, or a 416 to their Range said they are no head of it: once, for bytes an earlier call kept; one to
         bytes this call fetched is the error, or a whole fetch broken off mid-way every time had been asked again for
-        good). An error names the bytes kept, and where."""
+        good). An error names the bytes kept, and where. ``by_etag``: a whole answer (a 206 is the If-Range's, the
+        listed version) whose ETag names another version is _ArtifactReplaced, its bytes unread."""
         size, kept, failures = out.seek(0, os.SEEK_END), True, 0
         earlier = size  # bytes an earlier call kept
         try:
@@ -766,6 +799,15 @@ class Client:
                             raise ServiceError(f"GET {path}: answered {response.status_code} encoded as "
                                                f"{', '.join(codings)}, not the artifact's own bytes this client asks "
                                                "for (Accept-Encoding: identity)", response.status_code)
+                        served = response.headers.get("etag")
+                        if by_etag and served is not None and response.status_code != httpx.codes.PARTIAL_CONTENT \
+                                and served.strip().removeprefix("W/") != f'"{expected["sha256"]}"':
+                            out.truncate(0)  # (bytes of a version no longer served)
+                            size = 0
+                            raise _ArtifactReplaced(f"GET {path}: answered {response.status_code} with ETag "
+                                                    f"{served}, not the listed sha256 {expected['sha256']}: the "
+                                                    f"artifact was replaced {REPLACED_TRIES} times as it downloaded; "
+                                                    "nothing kept", response.status_code, listed=expected["sha256"])
                         start = _range_start(response, size)
                         if start == 0:  # the whole file, from its start
                             out.truncate(0)
