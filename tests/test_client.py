@@ -3128,6 +3128,66 @@ def test_a_download_through_a_proxy_rewriting_etags_lands_checked_by_its_bytes(a
     assert landed.read_bytes() == b"P" * 70_000 and sent == [(None, 200), (None, 200)]
 
 
+def test_voxe_download_interrupted_says_what_it_kept_and_where_and_the_next_run_goes_on(api, tmp_path, monkeypatch,
+                                                                                        capsys):
+    """Ctrl-C mid-download: its bytes stay in the hidden part file for the next run (as README says), but ``voxe
+    download`` said only "voxe: interrupted", the file and what it holds unsaid (a failure's error names them). It
+    says them now, exit 130, and the next run goes on from them with a Range."""
+    import voxe_core.cli.service as service_commands
+    from voxe_core.cli import main
+    from voxe_service.db import session_scope
+    from voxe_service.models import Artifact
+    from voxe_service.storage import get_storage
+
+    url, _ = api
+    (tmp_path / "plane.obj").write_text(PLANE_OBJ)
+    data = bytes(range(256)) * 4000
+    with Client(url) as client:
+        job = client.create_job(client.upload_scene(tmp_path / "plane.obj")["id"], "a plane of gold")
+    stored = get_storage().put_bytes(f"jobs/{job['id']}/grid.npz", data)
+    with session_scope() as session:
+        session.add(Artifact(job_id=job["id"], name="grid.npz", key=stored.key, size=stored.size, sha256=stored.sha256,
+                             content_type="application/octet-stream", kind="grid"))
+    sent = []
+
+    class CtrlC(httpx.SyncByteStream):  # the keyboard's, once 100,000 bytes came
+        def __init__(self, inner: httpx.SyncByteStream):
+            self.inner = inner
+
+        def __iter__(self):
+            got = 0
+            for chunk in self.inner:
+                for at in range(0, len(chunk), 50_000):
+                    yield chunk[at:at + 50_000]
+                    got += len(chunk[at:at + 50_000])
+                    if got >= 100_000:
+                        raise KeyboardInterrupt
+
+        def close(self) -> None:
+            self.inner.close()
+
+    class Recording(httpx.HTTPTransport):
+        def handle_request(self, request: httpx.Request) -> httpx.Response:
+            response = super().handle_request(request)
+            if request.url.path.endswith("/grid.npz"):
+                sent.append((request.headers.get("range"), response.status_code))
+                if len(sent) == 1:
+                    response.stream = CtrlC(response.stream)
+            return response
+
+    monkeypatch.setattr(service_commands, "_client", lambda args: Client(args.api, transport=Recording()))
+    out = tmp_path / "out"
+    assert main(["download", job["id"], "--out", str(out), "--api", url, "--quiet"]) == 130
+    part = out / f".grid.npz.{stored.sha256[:16]}.part"
+    kept = part.stat().st_size
+    assert 100_000 <= kept < len(data) and not (out / "grid.npz").exists()
+    assert capsys.readouterr().err.splitlines()[-1] == (
+        f"voxe download: interrupted downloading grid.npz of job {job['id']} ({kept} of {len(data)} bytes here, kept "
+        f"in {part} for the next download of it to go on from)")
+    assert main(["download", job["id"], "--out", str(out), "--api", url, "--quiet"]) == 0
+    assert sent[1] == (f"bytes={kept}-", 206) and (out / "grid.npz").read_bytes() == data and not part.exists()
+
+
 def test_an_empty_webhook_url_is_sent_and_refused_not_dropped(api, tmp_path, capsys):
     """``voxe submit --webhook-url "$HOOK"`` with HOOK unset had made the job without a webhook, exit 0: an empty
     value was taken for none given. The service refuses it, naming the field."""

@@ -692,7 +692,8 @@ class Client:
         one kept (a run stopped before its rename) without a request, one whose check fails having gone on from an
         earlier call's bytes (not a head of the artifact) fetched whole once more, and a 416 to their Range (no head of
         it either) fetched whole, once (a 416 to bytes this call fetched is the error). A mismatch then is a
-        ServiceError and deletes them. An answer whose ETag names another version than the listed one (the artifact
+        ServiceError and deletes them. A KeyboardInterrupt (Ctrl-C) mid-way comes back saying the bytes kept, and
+        where. An answer whose ETag names another version than the listed one (the artifact
         replaced since the listing was read: a running job's preview.png republished) has the listing read again and
         that version downloaded, up to :data:`REPLACED_TRIES` listings (it had been checked against the old listing
         and failed, said as bytes corrupted or running past the listed size).
@@ -765,6 +766,10 @@ class Client:
                 held = os.fstat(out.fileno()).st_size  # writing the part failed: a full disk, a file size limit
                 raise OSError(exc.errno, f"cannot download {what} to {dest} ({held} of {expected['size']} bytes "
                                          f"here{_kept_in(partial, held)}): {exc.strerror or exc}") from None
+            except KeyboardInterrupt:  # (Ctrl-C: the bytes kept had gone unsaid, as a failure's error says them)
+                held = os.fstat(out.fileno()).st_size
+                raise KeyboardInterrupt(f"interrupted downloading {what} ({held} of {expected['size']} bytes "
+                                        f"here{_kept_in(partial, held)})") from None
             finally:
                 if not replaced and not out.seek(0, os.SEEK_END):  # nothing to go on from
                     partial.unlink(missing_ok=True)

@@ -401,6 +401,9 @@ def cmd_download(args) -> int:
                     print(f"{path} (sha256 checked)", file=sys.stderr)
         except ServiceError as exc:
             return _service_error("download", exc)
+        except KeyboardInterrupt as exc:  # (its words say the bytes kept for the next run, and where)
+            print(f"\nvoxe download: {exc or 'interrupted'}", file=sys.stderr)
+            return EXIT_INTERRUPTED
     if state not in TERMINAL_STATES:  # (a download right after submit had exited 0 with a job's first few files)
         print(f"voxe download: note: job {args.job_id} is {state}: "
               f"{'these are the artifacts it has so far' if listed else 'it has no artifacts yet'}; `voxe wait "
