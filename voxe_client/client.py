@@ -357,19 +357,7 @@ class Client:
 
         ``idempotency_key`` (as :meth:`create_job`'s) makes a repeated call answer with the scene the first made."""
         path = Path(path)
-        kind = path.suffix.lower()
-        if path.is_dir():  # (open() had said only "[Errno 21] Is a directory")
-            raise ValueError(f"{path} is a folder: upload a dataset as a .zip of it, or one mesh file (.obj, .ply)")
-        if texture is not None and kind not in MESH_UPLOADS:
-            raise ValueError(f"a texture goes with a mesh upload (.obj or .ply); {path.name} is neither")
-        paths = MESH_UPLOADS[kind](path, texture) if kind in MESH_UPLOADS else [path]
-        for each in paths:  # (the multipart encoder had failed: "'utf-8' codec can't encode character '\udcff' ...")
-            try:
-                each.name.encode()
-            except UnicodeEncodeError:
-                shown = os.fsencode(each).decode(errors="backslashreplace")  # (no lone surrogate in the message)
-                raise ValueError(f"cannot upload {shown}: its name is not UTF-8, which the upload sends names as: "
-                                 "rename it") from None
+        paths = scene_upload_files(path, texture)
         field = "archive" if path.suffix.lower() == ".zip" else "files"
         form = {"name": name} if name else {}
         form.update((field_name, value) for field_name, value in (("mesh_shading", mesh_shading),
@@ -930,6 +918,26 @@ def _given_texture(mesh: Path, texture: str | os.PathLike) -> list[Path]:
     if Path(texture).suffix.lower() not in TEXTURE_SUFFIXES:
         raise ValueError(f"texture {Path(texture).name}: send it as one of {', '.join(TEXTURE_SUFFIXES)}")
     return [mesh, Path(texture)]
+
+
+def scene_upload_files(path: Path, texture: str | os.PathLike | None = None) -> list[Path]:
+    """The files :meth:`Client.upload_scene` sends for ``path`` (a zip; a mesh with what colours it), refused with a
+    ValueError naming the problem before anything is sent: ``voxe submit --upload`` asks it before it asks the
+    service anything."""
+    kind = path.suffix.lower()
+    if path.is_dir():  # (open() had said only "[Errno 21] Is a directory")
+        raise ValueError(f"{path} is a folder: upload a dataset as a .zip of it, or one mesh file (.obj, .ply)")
+    if texture is not None and kind not in MESH_UPLOADS:
+        raise ValueError(f"a texture goes with a mesh upload (.obj or .ply); {path.name} is neither")
+    paths = MESH_UPLOADS[kind](path, texture) if kind in MESH_UPLOADS else [path]
+    for each in paths:  # (the multipart encoder had failed: "'utf-8' codec can't encode character '\udcff' ...")
+        try:
+            each.name.encode()
+        except UnicodeEncodeError:
+            shown = os.fsencode(each).decode(errors="backslashreplace")  # (no lone surrogate in the message)
+            raise ValueError(f"cannot upload {shown}: its name is not UTF-8, which the upload sends names as: "
+                             "rename it") from None
+    return paths
 
 
 def ply_upload_files(ply: Path, texture: str | os.PathLike | None = None) -> list[Path]:

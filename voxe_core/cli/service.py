@@ -259,7 +259,7 @@ def _follow(client, job_id: str, args) -> int:
 
 def cmd_submit(args) -> int:
     from voxe_client import ServiceError
-    from voxe_client.client import MissingCompanionWarning
+    from voxe_client.client import MissingCompanionWarning, scene_upload_files
 
     if args.upload is None and (given := [option for option, value in (("--texture", args.texture),
                                                                        ("--up", args.up), ("--shading", args.shading))
@@ -280,6 +280,9 @@ def cmd_submit(args) -> int:
         try:
             scene_id = args.scene
             if args.upload is not None:
+                with warnings.catch_warnings():  # (said as the upload reads the mesh's companions again)
+                    warnings.simplefilter("ignore", MissingCompanionWarning)
+                    scene_upload_files(args.upload, args.texture)  # a file it cannot send: before asking the service
                 try:  # (a bad --params had been refused once the whole upload was stored, the scene deleted again)
                     client.check_job(args.prompt, **fields)
                 except ServiceError as exc:
