@@ -31,7 +31,7 @@ from api.services.jobs import request_cancel, rotate_webhook_secret
 from voxe_service.db import DATABASE_UNAVAILABLE, database_outage, run_migrations, session_scope
 from voxe_service.models import LOCAL_KEY_ID, PROCESSING, TERMINAL_STATES, ApiKey, Job, Scene, utcnow
 from voxe_service.scenes import fail_scene
-from voxe_service.settings import SettingsError, get_settings
+from voxe_service.settings import SettingsError, get_settings, refuse_settings
 from voxe_service.storage import get_storage, scene_key
 
 
@@ -175,8 +175,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return _command(argv)
     except SettingsError as exc:
-        print(f"python -m api.admin: {exc}", file=sys.stderr)
-        return 1
+        return refuse_settings("python -m api.admin", exc)
     except DATABASE_UNAVAILABLE as exc:
         if (why := database_outage(exc)) is None:
             raise

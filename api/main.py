@@ -6,6 +6,7 @@ import asyncio
 import logging
 import math
 import signal
+import sys
 import threading
 from collections.abc import Callable, Iterator
 from contextlib import asynccontextmanager, contextmanager
@@ -19,7 +20,7 @@ from starlette.requests import HTTPConnection
 
 from api import http_semantics
 from voxe_service.db import run_migrations, sync_clock
-from voxe_service.settings import Settings, get_settings, model_label
+from voxe_service.settings import Settings, SettingsError, get_settings, model_label, refuse_settings
 from voxe_service.texts import shorter
 
 log = logging.getLogger("voxe.api")
@@ -274,6 +275,9 @@ async def validation_error(request, exc: RequestValidationError) -> JSONResponse
 
 def __getattr__(name: str):  # ``uvicorn api.main:app`` builds the app on first access
     if name == "app":
-        globals()["app"] = create_app()
+        try:
+            globals()["app"] = create_app()
+        except SettingsError as exc:  # one line naming the setting, as uvicorn's traceback had ended with
+            sys.exit(refuse_settings("Vox-E API", exc))
         return globals()["app"]
     raise AttributeError(name)

@@ -329,10 +329,28 @@ def test_a_worker_refuses_at_start_a_cuda_device_its_machine_lacks(tmp_path):
     have = (f"this machine has {count} CUDA device" if count else
             "CUDA is unavailable on this machine (torch sees no CUDA device); name one it has, or cpu, or auto (CUDA "
             "when available)")
-    assert refused.returncode != 0 and f"SettingsError: bad service settings: VOXE_DEVICE='cuda:4096': {have}" in (
-        refused.stderr), refused.stderr
+    assert refused.returncode == 1 and refused.stderr.startswith(
+        f"Vox-E worker: bad service settings: VOXE_DEVICE='cuda:4096': {have}"), refused.stderr
     started = start("cpu" if not count else f"cuda:{count - 1}")
     assert started.returncode == 0, started.stderr
+
+
+@pytest.mark.parametrize("command", [
+    ["-m", "uvicorn", "api.main:app", "--port", "0"],
+    ["-m", "celery", "-A", "worker.celery_app", "worker", "-Q", "gpu"],
+], ids=["api", "worker"])
+def test_the_api_and_the_worker_refuse_a_bad_setting_in_one_line(tmp_path, command):
+    """VOXE_MAX_UPLOAD_BYTES=abc had ended `uvicorn api.main:app` and the Celery worker in a traceback of some thirty
+    lines, the variable named on its last; as python -m api.admin does, one line on stderr now names it, exit 1."""
+    from service_helpers import service_env
+
+    env = {**os.environ, **service_env(tmp_path), "VOXE_MAX_UPLOAD_BYTES": "abc", "PYTHONPATH": str(ROOT)}
+    refused = subprocess.run([sys.executable, *command], cwd=ROOT, env=env, capture_output=True, text=True,
+                             timeout=120)
+    program = "Vox-E API" if "uvicorn" in command else "Vox-E worker"
+    assert refused.returncode == 1, refused.stderr
+    assert refused.stderr == (f"{program}: bad service settings: VOXE_MAX_UPLOAD_BYTES='abc': Input should be a valid "
+                              "integer, unable to parse string as an integer\n"), refused.stderr
 
 
 def test_s3_endpoints_naming_a_host_are_accepted():

@@ -468,6 +468,14 @@ class SettingsError(ValueError):
     """Environment variables the service cannot start with, each named as it is set."""
 
 
+def refuse_settings(program: str, error: SettingsError) -> int:
+    """Say ``error`` in one line on stderr, prefixed with ``program``; the exit status to end with (1). The API, the
+    worker and ``python -m api.admin`` share it: the API and the worker had ended in a traceback whose last line named
+    the variable."""
+    print(f"{program}: {error}", file=sys.stderr)
+    return 1
+
+
 @lru_cache
 def get_settings() -> Settings:
     try:

@@ -7,8 +7,13 @@ an app with tasks at import. The API sends by task name through its own sender.
 
 from __future__ import annotations
 
-from voxe_service.queue import create_celery_app
-from voxe_service.settings import check_worker_device, get_settings
+import sys
 
-check_worker_device(get_settings())  # (a device this machine lacks had failed every job instead)
+from voxe_service.queue import create_celery_app
+from voxe_service.settings import SettingsError, check_worker_device, get_settings, refuse_settings
+
+try:
+    check_worker_device(get_settings())  # (a device this machine lacks had failed every job instead)
+except SettingsError as exc:  # one line naming the setting, as Celery's traceback had ended with
+    sys.exit(refuse_settings("Vox-E worker", exc))
 app = create_celery_app(include=["worker.tasks"])
