@@ -520,6 +520,50 @@ def test_the_worker_image_hands_a_running_stage_back_when_stopped():
     assert re.search(r"^\s*REMAP_SIGTERM=SIGQUIT\b", (ROOT / "docker/worker.Dockerfile").read_text(), re.M)
 
 
+def _docker_ignores(path: str, patterns: list[str]) -> bool:
+    """Whether ``.dockerignore``'s ``patterns`` keep ``path`` (a file, '/'-separated, from the context's root) out of
+    the build context, as Docker matches them: the last pattern matching the path or a folder above it decides
+    ('!': kept in); '*' and '?' within a name, '**' across folders; a leading '/' means nothing."""
+    def regex(pattern: str) -> str:
+        parts = re.split(r"(\*\*/?|\*|\?)", pattern.strip("/"))
+        return "".join({"**/": "(?:.*/)?", "**": ".*", "*": "[^/]*", "?": "[^/]"}.get(part, re.escape(part))
+                       for part in parts)
+
+    names = path.split("/")
+    ignored = False
+    for pattern in patterns:
+        kept = pattern.startswith("!")
+        folders = ("/".join(names[:end]) for end in range(1, len(names) + 1))
+        if any(re.fullmatch(regex(pattern.removeprefix("!")), folder) for folder in folders):
+            ignored = not kept
+    return ignored
+
+
+def test_the_docker_build_context_holds_what_the_images_copy_and_nothing_the_repository_ignores():
+    """The build context had been sent with runs/, bench/.cache, tests/.artifacts, .pytest_cache, build/ and dist/
+    (gigabytes of edit runs and caches, to the daemon at every `docker build`): every .gitignore entry, placed at the
+    root and in a package, is kept out by .dockerignore, and every tracked file a Dockerfile COPYs is sent."""
+    patterns = [line.strip() for line in (ROOT / ".dockerignore").read_text().splitlines()
+                if line.strip() and not line.startswith("#")]
+    for entry in (line.strip() for line in (ROOT / ".gitignore").read_text().splitlines()):
+        if not entry or entry.startswith(("#", "!")):
+            continue
+        name = entry.strip("/").replace("*", "x") + ("/file" if entry.endswith("/") else "")
+        places = [name] if "/" in entry.rstrip("/") else [name, f"voxe_core/{name}"]  # (unanchored: at any depth)
+        for place in places:
+            assert _docker_ignores(place, patterns), f"{place} (.gitignore: {entry}) is sent to the docker daemon"
+    tracked = subprocess.run(["git", "ls-files"], cwd=ROOT, capture_output=True, text=True, check=True).stdout.split()
+    for image in ("docker/api.Dockerfile", "docker/worker.Dockerfile"):
+        for line in re.findall(r"^COPY\s+(.+)$", (ROOT / image).read_text(), re.M):
+            sources = [word for word in line.split()[:-1] if not word.startswith("--")]
+            assert sources, line
+            for source in sources:
+                files = [f for f in tracked if f == source or f.startswith(source.rstrip("/") + "/")]
+                assert files, f"{image} copies {source}, which the repository does not hold"
+                left_out = [f for f in files if _docker_ignores(f, patterns)]
+                assert not left_out, f"{image} copies {source}, but .dockerignore leaves out {left_out[:5]}"
+
+
 def test_the_images_install_the_torch_the_tests_run():
     """The worker image had installed whatever torch its CUDA index served last (TORCH_SPEC "torch"): a rebuild
     could bring a release nothing here was tested with, and the API and the worker different ones."""
