@@ -758,6 +758,7 @@ def test_an_upload_answered_with_no_scene_says_so(live, browser, tmp_path):
                                                              "the upload may not have been stored")
         assert driver.execute_script("return window.rejections") == []
         assert driver.find_element("css selector", "#upload-form button").is_enabled()
+        assert driver.execute_script("return document.querySelector('#upload-progress').hidden")
     keys = driver.execute_script("return window.keys")
     assert len(keys) == 2 and keys[0] == keys[1], keys
     driver.refresh()
@@ -1274,6 +1275,26 @@ def test_an_upload_cut_off_by_the_network_leaves_no_progress_shown(live, browser
     finally:
         listener.close()
     driver.get(f"{svc.base}/")
+
+
+def test_an_upload_refused_leaves_no_progress_shown(live, browser, tmp_path):
+    """An upload sent whole and refused (a 422: a .zip that is none) hides its progress bar with the refusal said: the
+    bar had stayed at 100 % beside the error, as if the upload had gone through."""
+    svc, token, _archive = live
+    driver = browser
+    set_key(driver, svc, token)
+    driver.execute_script("window.shares = [];"
+                          "new MutationObserver(() => shares.push(document.querySelector('#upload-progress').value))"
+                          ".observe(document.querySelector('#upload-progress'), { attributes: true });")
+    (tmp_path / "bad.zip").write_bytes(b"not a zip" * 4096)
+    driver.find_element("id", "upload-archive").send_keys(str(tmp_path / "bad.zip"))
+    driver.find_element("css selector", "#upload-form button").click()
+    wait_until(lambda: text(driver, '[data-error-for="upload"]'), 30, what="the upload refused")
+    assert text(driver, '[data-error-for="upload"]').startswith("422: archive 'bad.zip' is not a readable zip file")
+    assert 1 in driver.execute_script("return window.shares")  # (it was sent whole)
+    assert driver.execute_script("return document.querySelector('#upload-progress').hidden")
+    assert driver.find_element("css selector", "#upload-form button").is_enabled()
+    driver.find_element("id", "upload-archive").clear()
 
 
 def test_an_edit_with_no_scene_to_edit_says_what_to_do_and_sends_nothing(live, browser):

@@ -290,7 +290,8 @@ function initUpload() {
       bar.setAttribute("aria-valuetext", sent.textContent);
     };
     xhr.onloadend = () => { button.disabled = false; sent.textContent = ""; };
-    // The bar goes with the upload it showed: left at its share sent, it had read as an upload still going on.
+    // The bar goes with the upload it showed, unless stored: left at its share sent (at 100 % on a refusal), it had
+    // read as an upload still going on, or one that went through.
     xhr.onerror = () => {
       bar.hidden = true;
       showError("upload", "the upload failed (network error)");
@@ -299,6 +300,7 @@ function initUpload() {
       if (xhr.status >= 400) {
         const error = apiError(xhr.status, xhr.statusText, xhr.getResponseHeader("Content-Type"), xhr.responseText,
                                xhr.getResponseHeader("Retry-After"));
+        bar.hidden = true;
         showApiError(error, "upload");
         status.textContent = "";
         return;
@@ -307,6 +309,7 @@ function initUpload() {
       try { body = JSON.parse(xhr.responseText); } catch { /* no JSON: said below */ }
       if (typeof body?.id !== "string") {  // no API answer (a login page a proxy sent the upload to): said, not thrown
         const error = notTheApis(xhr.status, xhr.getResponseHeader("Content-Type"), "scene");
+        bar.hidden = true;
         showError("upload", `${errorText(error)}: the upload may not have been stored`);
         status.textContent = "";
         return;
