@@ -734,6 +734,59 @@ def test_a_second_upload_s_status_is_not_written_over_by_the_first_s_outcome(liv
             assert client.delete(f"/v1/scenes/{scene_id}").status_code == 204
 
 
+def _upload_two(driver, tmp_path, status) -> list[str]:
+    """Upload two tetrahedra named first and second; their scene ids."""
+    made = []
+    for name in ("first", "second"):
+        (tmp_path / name).mkdir()
+        driver.find_element("id", "upload-files").clear()
+        driver.find_element("id", "upload-files").send_keys(str(tetrahedron(tmp_path / name)))
+        driver.find_element("id", "upload-name").clear()
+        driver.find_element("id", "upload-name").send_keys(name)
+        driver.find_element("css selector", "#upload-form button").click()
+        wait_until(lambda: (found := re.search(r"stored as (\S+);", status())) and found[1] not in made, 30,
+                   what=f"the {name} upload stored")
+        made.append(re.search(r"stored as (\S+);", status())[1])
+    driver.find_element("id", "upload-name").clear()
+    return made
+
+
+def test_every_upload_still_processing_is_watched_again_after_a_look_at_a_job_or_a_reload(live, browser, tmp_path):
+    """Two uploads still processing: back from a job's page, only the last one's scene had been watched again (the
+    first never offered once ready, until the page was loaded again), and after a reload neither. Both are now watched
+    until they are processed, then offered."""
+    svc, token, _archive = live
+    driver = browser
+    status = lambda: text(driver, "#upload-status")  # noqa: E731
+    offered = "return [...document.querySelectorAll('#job-scene option')].map((option) => option.value)"
+    set_key(driver, svc, token)
+    faults(driver, {"/v1/scenes/": scene_answered(PROCESSING_SCENE)})
+    try:
+        made = _upload_two(driver, tmp_path, status)
+        go(driver, "#/jobs/elsewhere")
+        driver.execute_script("window.requests = []")
+        go(driver, "#/")
+        for scene_id in made:
+            wait_until(lambda: len(requested(driver, f"/v1/scenes/{scene_id}")) >= 2, 10,
+                       what=f"{scene_id} watched again after a look at a job")
+        listed = {"items": [{"id": scene_id, "name": "tetra", "state": "processing"} for scene_id in made],
+                  "next_cursor": None}
+        faults(driver, {"/v1/scenes/": scene_answered(PROCESSING_SCENE), "/v1/scenes?": scene_answered(listed)})
+        driver.refresh()
+        for scene_id in made:
+            wait_until(lambda: len(requested(driver, f"/v1/scenes/{scene_id}")) >= 2, 10,
+                       what=f"{scene_id} watched after a reload")
+    finally:
+        faults(driver, {})
+    for scene_id in made:
+        wait_until(lambda: scene_id in driver.execute_script(offered), 120, what=f"{scene_id} offered once ready",
+                   processes=svc.processes)
+    with httpx.Client(base_url=svc.base, headers={"Authorization": f"Bearer {token}"}) as client:
+        for scene_id in made:  # the other tests expect their own only
+            assert client.delete(f"/v1/scenes/{scene_id}").status_code == 204
+    driver.refresh()
+
+
 def test_an_upload_answered_with_no_scene_says_so(live, browser, tmp_path):
     """An upload answered 200 with no scene (a proxy's login page it was redirected to) is said beside the upload: its
     answer had been parsed unguarded, an unhandled rejection left the form at "100 % sent". Sent again, it keeps its

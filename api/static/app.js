@@ -317,7 +317,8 @@ function initUpload() {
       idempotency.succeeded();
       bar.value = 1;
       status.textContent = `stored as ${body.id}; ${body.state}…`;
-      ingesting = reported = body.id;
+      ingesting.add(body.id);
+      reported = body.id;
       // Watched on the page shown when the upload is answered (and again on a later home page: ingesting): the
       // page it was sent from is gone after a look at a job meanwhile, and the home page shown since had found
       // nothing to watch when it opened, leaving the scene "processing…" and never offered.
@@ -327,9 +328,11 @@ function initUpload() {
   });
 }
 
-/** The uploaded scene whose ingest the upload form reports, until the ingest ends: watched again whenever the home
- * page shows (a look at a job meanwhile had left it "processing…" for good, and the scene never offered). */
-let ingesting = null;
+/** The scenes whose ingest the page watches until it ends: each uploaded here, and each the scene lists found
+ * processing (after a reload); all watched again whenever the home page shows. A look at a job meanwhile had left it
+ * "processing…" for good and the scene never offered; only the last upload's had been watched again, an earlier
+ * one's (and after a reload, any) left unoffered until the page was loaded again once it was ready. */
+const ingesting = new Set();
 
 /** The scene of the last upload sent, the one the upload form's status, warnings and error report: an earlier
  * upload's scene still watched once it is sent had its outcome ("scene A: ready") written over the later one's. */
@@ -347,7 +350,7 @@ async function waitForScene(sceneId, status, signal) {
       if (errorSlot("upload").textContent.startsWith(`checking scene ${sceneId}: `)) showError("upload", "");
       failures = 0;
       if (scene.state !== "processing") {
-        if (ingesting === sceneId) ingesting = null;
+        ingesting.delete(sceneId);
         if (reported === sceneId) {
           status.textContent = `scene ${scene.name} (${scene.id}): ${scene.state}`;
           showSceneWarnings(scene.warnings);
@@ -361,7 +364,7 @@ async function waitForScene(sceneId, status, signal) {
       // The scene gone (deleted meanwhile): asked again it is answered the same (it had been asked every 30 s for
       // as long as the page stayed open, and again on every later home page).
       if (error.status === 404) {
-        if (ingesting === sceneId) ingesting = null;
+        ingesting.delete(sceneId);
         showError("upload", `checking scene ${sceneId}: ${errorText(error)}; not asked again`);
         return;
       }
@@ -430,6 +433,7 @@ let noSceneReason = "the scenes have not loaded yet: wait for them, or reload th
 async function loadScenes(signal, selected) {
   const scenes = await allScenes(signal);
   const ready = scenes.filter((s) => s.state === "ready");
+  for (const s of scenes) if (s.state === "processing") ingesting.add(s.id);
   noSceneReason = scenes.some((s) => s.state === "processing")
     ? "no scene is ready yet: wait until the one uploaded is processed (it is offered here once it is ready)"
     : "no scene to edit: upload one (1. Upload a scene), then choose it here once it is ready";
@@ -974,7 +978,7 @@ async function route() {
   // had left the Scene field empty for good, its message at once wiped by the job list's. Both are asked again
   // once the page shows, no sooner than a failure's Retry-After asks.
   let scenesFailure = await refreshScenes(signal);
-  if (ingesting) waitForScene(ingesting, $("#upload-status"), signal);
+  for (const sceneId of ingesting) waitForScene(sceneId, $("#upload-status"), signal);
   while (!signal.aborted) {
     const jobsFailure = await loadJobs(signal);
     // A key used meanwhile aborted this page: its scenes' refusal was for the old key (the new one had been named
