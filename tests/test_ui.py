@@ -751,6 +751,35 @@ def _upload_two(driver, tmp_path, status) -> list[str]:
     return made
 
 
+def test_an_earlier_upload_s_failed_ingest_is_listed_under_the_form(live, browser, tmp_path):
+    """The form reports the last upload sent: a first upload whose ingest failed once a second was sent had its
+    failure said nowhere (its scene just never offered). It is listed under the form, naming the scene and why."""
+    svc, token, _archive = live
+    driver = browser
+    status = lambda: text(driver, "#upload-status")  # noqa: E731
+    set_key(driver, svc, token)
+    faults(driver, {"/v1/scenes/": scene_answered(PROCESSING_SCENE)})
+    try:
+        first, second = made = _upload_two(driver, tmp_path, status)
+        failed = {"id": first, "name": "first", "state": "failed", "error": "the mesh has no faces"}
+        faults(driver, {f"/v1/scenes/{first}": scene_answered(failed),
+                        f"/v1/scenes/{second}": scene_answered(PROCESSING_SCENE)})
+        wait_until(lambda: driver.find_elements("css selector", "#upload-earlier li"), 10, what="the failure listed")
+        listed = [item.text for item in driver.find_elements("css selector", "#upload-earlier li")]
+        assert listed == [f"scene first ({first}) failed: the mesh has no faces"], listed
+        assert driver.find_element("id", "upload-earlier").is_displayed()
+        assert status() == f"stored as {second}; processing…", status()
+        assert not text(driver, '[data-error-for="upload"]')
+    finally:
+        faults(driver, {})
+    with httpx.Client(base_url=svc.base, headers={"Authorization": f"Bearer {token}"}) as client:
+        for scene_id in made:  # the other tests expect their own only
+            wait_until(lambda: client.get(f"/v1/scenes/{scene_id}").json()["state"] != "processing", 120,
+                       what="the scene processed", processes=svc.processes)
+            assert client.delete(f"/v1/scenes/{scene_id}").status_code == 204
+    driver.refresh()
+
+
 def test_every_upload_still_processing_is_watched_again_after_a_look_at_a_job_or_a_reload(live, browser, tmp_path):
     """Two uploads still processing: back from a job's page, only the last one's scene had been watched again (the
     first never offered once ready, until the page was loaded again), and after a reload neither. Both are now watched

@@ -355,6 +355,8 @@ async function waitForScene(sceneId, status, signal) {
           status.textContent = `scene ${scene.name} (${scene.id}): ${scene.state}`;
           showSceneWarnings(scene.warnings);
           if (scene.state === "failed") showError("upload", scene.error || "the scene could not be decoded");
+        } else if (scene.state === "failed") {
+          listEarlierFailure(scene);
         }
         await loadScenes(signal, scene.state === "ready" ? scene.id : undefined);
         return;
@@ -380,6 +382,16 @@ async function waitForScene(sceneId, status, signal) {
     await sleep(retryWait(Math.min(1000 * 2 ** failures, 30_000), failure), signal);
     await shown(signal);
   }
+}
+
+/** An earlier upload's failed ingest, listed under the upload form: the form reports the last upload sent only, and
+ * an earlier one's failure, once a later upload was sent, had been said nowhere (its scene just never offered). */
+function listEarlierFailure(scene) {
+  const list = $("#upload-earlier");
+  const item = document.createElement("li");
+  item.textContent = `scene ${scene.name} (${scene.id}) failed: ${scene.error || "the scene could not be decoded"}`;
+  list.append(item);
+  list.hidden = false;
 }
 
 /** What the scene's processing loaded the upload without (a mesh's .mtl not sent, its PLY's texture unread: it
