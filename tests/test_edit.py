@@ -838,6 +838,37 @@ def test_a_checkpoint_holding_a_nan_is_refused_as_one_to_start_afresh_from(name,
         edit(small_sphere, "a dog", FakeGuidance(), EditConfig(iterations=2, render_size=SIZE), resume_from=checkpoint)
 
 
+@pytest.mark.parametrize("damage, message", [
+    ("rng_host", "its rng_host holds nothing, not a generator state"),
+    ("rng_device", "its rng_device holds nothing, not a generator state"),
+    ("adam_exp_avg", "its adam_exp_avg holds nothing, not shape (8000, 4)"),
+    ("adam_step", "its adam_step holds nothing, not shape (1,)"),
+    ("features", "its features holds nothing, not shape (20, 20, 20, 4)"),
+    (("adam_exp_avg_sq", torch.zeros(7999, 4)), "its adam_exp_avg_sq holds shape (7999, 4), not shape (8000, 4)"),
+    (("features", torch.zeros(20, 20, 20, 3)), "its features holds shape (20, 20, 20, 3), not shape (20, 20, 20, 4)"),
+    (("rng_host", torch.zeros(16, dtype=torch.uint8)), "its rng_host is no generator state this run can take ("),
+    (("adam_step", torch.zeros(2, dtype=torch.float64)), "its adam_step holds shape (2,), not shape (1,)"),
+])
+def test_a_checkpoint_whose_tensors_are_damaged_is_refused_as_a_format_error(damage, message, small_sphere, tmp_path):
+    """A checkpoint whose header is intact but a tensor is missing or of the wrong shape had raised a KeyError or a
+    RuntimeError (at the load, or at the first step's Adam), which the worker fails the job on: a FormatError, naming
+    what is wrong, is what it starts the stage over from, as from an unreadable checkpoint."""
+    from voxe_core.edit import EDIT_CHECKPOINT_KIND, EDIT_CHECKPOINT_VERSION
+    from voxe_core.tensorio import FormatError, save_tensors
+
+    checkpoint = tmp_path / "c.safetensors"
+    edit(small_sphere, "a dog", FakeGuidance(), EditConfig(iterations=1, render_size=SIZE), checkpoint_path=checkpoint)
+    tensors, meta = load_edit_checkpoint(checkpoint)
+    name, value = damage if isinstance(damage, tuple) else (damage, None)
+    if value is None:
+        del tensors[name]
+    else:
+        tensors[name] = value
+    save_tensors(checkpoint, tensors, EDIT_CHECKPOINT_KIND, EDIT_CHECKPOINT_VERSION, meta)
+    with pytest.raises(FormatError, match=f"^{re.escape(f'{checkpoint}: damaged checkpoint: {message}')}"):
+        edit(small_sphere, "a dog", FakeGuidance(), EditConfig(iterations=2, render_size=SIZE), resume_from=checkpoint)
+
+
 class HugeGradientGuidance(FakeGuidance):
     """Its first SDS loss is finite with a gradient finite but past float32's square root: Adam's second moment
     overflows to +inf there and those vertices stand still, the grid finite."""

@@ -512,6 +512,20 @@ def _checkpoint_holds(checkpoint_path, resume_from, start: int) -> int | None:
     return None if Path(checkpoint_path).exists() else 0
 
 
+def _check_tensors(path, tensors: dict[str, torch.Tensor], features: tuple[int, ...], flat: tuple[int, ...]) -> None:
+    """FormatError naming the tensor an edit checkpoint whose header is intact lacks or holds in another shape than
+    G_e's ``features`` / ``flat`` features: one removed or of the wrong shape had raised a KeyError or RuntimeError
+    (at the load, or at the first step's Adam), failing the job where the worker starts the stage over from a
+    FormatError, as it does from an unreadable checkpoint."""
+    shapes = {"features": features, "adam_exp_avg": flat, "adam_exp_avg_sq": flat, "adam_step": (1,),
+              "rng_host": None, "rng_device": None}  # (a generator's state: its size is the generator's to judge)
+    for name, shape in shapes.items():
+        if name not in tensors or (shape is not None and tuple(tensors[name].shape) != shape):
+            found = f"shape {tuple(tensors[name].shape)}" if name in tensors else "nothing"
+            wanted = "a generator state" if shape is None else f"shape {shape}"
+            raise FormatError(f"{path}: damaged checkpoint: its {name} holds {found}, not {wanted}")
+
+
 def _listed(words: list[str]) -> str:
     """``a``, ``a and b``, ``a, b and c``."""
     return " and ".join(filter(None, [", ".join(words[:-1]), words[-1]]))
@@ -671,9 +685,11 @@ def edit(
     zeroed_said = False
     if resume_from is not None:
         tensors, meta = load_edit_checkpoint(resume_from)
-        if tuple(tensors["features"].shape[:3]) != initial_grid.resolution:  # (its header said otherwise, or nothing)
+        if "features" in tensors and tuple(tensors["features"].shape[:3]) != initial_grid.resolution:  # (its header
+            # said otherwise, or nothing)
             raise FormatError(f"{resume_from}: checkpoint grid is {tuple(tensors['features'].shape[:3])}, the initial "
                               f"grid {initial_grid.resolution}")
+        _check_tensors(resume_from, tensors, tuple(initial_grid.features.shape), tuple(param.shape))
         # One saved before G_e's finiteness was checked (or damaged): its first step had diverged, blamed on half
         # precision, at every resume, where the worker starts a stage over from a checkpoint it cannot go on from.
         # The save's rule, G_e finite, leaves the first moment finite and the second in [0, +inf] (either NaN, or
@@ -706,13 +722,19 @@ def edit(
         if not isinstance(zeroed_said, bool):
             raise FormatError(f"{resume_from}: damaged checkpoint: its zeroed_said is {zeroed_said!r}, not true or "
                               "false")
-        host_gen.set_state(tensors["rng_host"])
         state = tensors["rng_device"]
-        if meta.get("device") == device.type or ("device" not in meta and  # (older: told by its state's size)
-                                                 state.numel() == device_gen.get_state().numel()):
-            device_gen.set_state(state)
-        else:  # another device type's state (CUDA's 16-byte Philox seed and offset, a CPU's 5,056 bytes) had raised a
-            # RuntimeError here, so a job moved to another worker failed for good: reseeded from where the run stands
+        same_type = meta.get("device") == device.type or ("device" not in meta and  # (older: told by its state's size)
+                                                          state.numel() == device_gen.get_state().numel())
+        for name, generator in (("rng_host", host_gen), ("rng_device", device_gen)):
+            if generator is host_gen or same_type:
+                try:
+                    generator.set_state(tensors[name])
+                except (RuntimeError, TypeError) as exc:  # (a state of another size or dtype)
+                    raise FormatError(f"{resume_from}: damaged checkpoint: its {name} is no generator state this run "
+                                      f"can take ({exc})") from None
+        if not same_type:  # another device type's state (CUDA's 16-byte Philox seed and offset, a CPU's 5,056 bytes)
+            # had raised a RuntimeError here, so a job moved to another worker failed for good: reseeded from where
+            # the run stands
             device_gen.manual_seed(hash((config.seed + 1, start)) % 2**63)
 
     def finite() -> bool:
