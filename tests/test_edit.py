@@ -1199,6 +1199,36 @@ def test_a_regulariser_a_constant_initial_grid_switches_off_is_said_before_the_f
         edit(unfitted, "a dog", FakeGuidance(), EditConfig(iterations=1, render_size=16))
 
 
+def test_a_regulariser_switched_off_is_said_once_across_a_resume(tmp_path):
+    """Said again at every resume, each redelivery of a job had added a duplicate warning event: whether it was said
+    is carried in the checkpoint, as the zeroed SDS gradient's warning is; a damaged value is a FormatError, a
+    checkpoint older than the field says it as before."""
+    from voxe_core.tensorio import FormatError, save_tensors
+
+    unfitted, warnings = VoxelGrid(12), []  # a constant density: L_reg3D off
+    callbacks = Callbacks(on_warning=lambda stage, text: warnings.append(text))
+    checkpoint, config = tmp_path / "c.safetensors", EditConfig(iterations=1, render_size=16)
+    edit(unfitted, "a dog", FakeGuidance(), config, callbacks, checkpoint_path=checkpoint)
+    for iterations in (2, 3):  # two redeliveries, each resuming from the checkpoint the last one wrote
+        edit(unfitted, "a dog", FakeGuidance(), dataclasses.replace(config, iterations=iterations), callbacks,
+             checkpoint_path=checkpoint, resume_from=checkpoint)
+    assert len(warnings) == 1 and warnings[0].startswith("the reconstruction's density is constant")
+    assert load_edit_checkpoint(checkpoint)[1]["regulariser_off_said"] is True
+    tensors, meta = load_edit_checkpoint(checkpoint)
+    save_tensors(tmp_path / "d.safetensors", tensors, kind=edit_module.EDIT_CHECKPOINT_KIND,
+                 version=edit_module.EDIT_CHECKPOINT_VERSION, meta={**meta, "regulariser_off_said": "yes"})
+    with pytest.raises(FormatError, match=re.escape("damaged checkpoint: its regulariser_off_said is 'yes', not true "
+                                                    "or false")):
+        edit(unfitted, "a dog", FakeGuidance(), dataclasses.replace(config, iterations=4),
+             resume_from=tmp_path / "d.safetensors")
+    older = {name: value for name, value in meta.items() if name != "regulariser_off_said"}
+    save_tensors(tmp_path / "o.safetensors", tensors, kind=edit_module.EDIT_CHECKPOINT_KIND,
+                 version=edit_module.EDIT_CHECKPOINT_VERSION, meta=older)
+    edit(unfitted, "a dog", FakeGuidance(), dataclasses.replace(config, iterations=4), callbacks,
+         resume_from=tmp_path / "o.safetensors")
+    assert len(warnings) == 2 and warnings[1] == warnings[0]
+
+
 def test_an_initial_grid_with_no_density_its_renders_sample_is_refused_before_the_first_step():
     """Through a transparent volume (a ReLU field with no positive density, or none above the skip threshold) the
     SDS gradient is 0: the edit had run every iteration and returned the grid it was given. It is refused at once."""

@@ -595,7 +595,8 @@ def edit(
     iteration (``StageCancelled``; a checkpoint is written first when
     ``checkpoint_path`` is set and G_e is finite, else the earlier one stays). Info also carries ``peak_memory_gb`` /
     ``peak_memory_kind`` (:class:`voxe_core.devices.PeakMemory`). Before the first step, ``callbacks.warning`` says
-    what of the regulariser a constant channel of G_i switches off (:func:`regulariser_off`), and that fp16 autocast
+    what of the regulariser a constant channel of G_i switches off (:func:`regulariser_off`; once across resumes
+    too, as the zeroed SDS gradient below), and that fp16 autocast
     runs as bfloat16 on the CPU (:func:`autocast_dtype`).
 
     Everything runs on ``device`` (None: ``guidance.device`` when the guidance
@@ -683,6 +684,9 @@ def edit(
     # Whether the first step with zeroed SDS gradient entries was said, carried across a resume as that count: a
     # job resumed past it (a worker restarted) had been told again at its next such step.
     zeroed_said = False
+    # Whether what a constant channel of G_i switches off of the regulariser was said (:func:`regulariser_off`),
+    # carried the same way: said again at every resume, each redelivery of a job had added a duplicate warning event.
+    off_said = False
     if resume_from is not None:
         tensors, meta = load_edit_checkpoint(resume_from)
         if "features" in tensors and tuple(tensors["features"].shape[:3]) != initial_grid.resolution:  # (its header
@@ -722,6 +726,10 @@ def edit(
         if not isinstance(zeroed_said, bool):
             raise FormatError(f"{resume_from}: damaged checkpoint: its zeroed_said is {zeroed_said!r}, not true or "
                               "false")
+        off_said = meta.get("regulariser_off_said", False)  # (a checkpoint older than the field: not said)
+        if not isinstance(off_said, bool):
+            raise FormatError(f"{resume_from}: damaged checkpoint: its regulariser_off_said is {off_said!r}, not true "
+                              "or false")
         state = tensors["rng_device"]
         same_type = meta.get("device") == device.type or ("device" not in meta and  # (older: told by its state's size)
                                                           state.numel() == device_gen.get_state().numel())
@@ -752,7 +760,8 @@ def edit(
     def checkpoint(done: int) -> None:
         check_finite(done)
         save_edit_checkpoint(checkpoint_path, grid, optimizer, generators, done,
-                             {**run_meta, "nonfinite_steps": nonfinite_steps, "zeroed_said": zeroed_said},
+                             {**run_meta, "nonfinite_steps": nonfinite_steps, "zeroed_said": zeroed_said,
+                              "regulariser_off_said": off_said},
                              views_record)
         callbacks.checkpoint_written(str(checkpoint_path))
 
@@ -779,7 +788,8 @@ def edit(
             image = render_image(grid, preview_cameras, 0, config.render).rgb[..., :3]
             on_preview(done, image.detach().to("cpu", torch.float32))
 
-    if (off := regulariser_off(initial_grid, config)) is not None:  # (where the run starts: after what it refuses)
+    if (off := regulariser_off(initial_grid, config)) is not None and not off_said:  # (where the run starts: after
+        off_said = True  # what it refuses)
         callbacks.warning("edit", off)
     guidance_dtype = autocast_dtype(device, config.autocast_dtype, callbacks)
     advice = overflow_advice(guidance_dtype, guidance.dtype)  # (said where a step overflowed)
