@@ -741,6 +741,22 @@ def test_a_zero_iteration_edit_writes_a_checkpoint_with_zero_moments(small_spher
     assert not tensors["adam_exp_avg"].any() and not tensors["adam_exp_avg_sq"].any()
 
 
+def test_a_run_that_takes_no_step_reports_one_progress_at_total_of_total(small_sphere, tmp_path):
+    """An edit of 0 iterations, or one resumed at its last iteration (a worker redelivered after the last checkpoint),
+    had reported no progress at all: the worker's row kept total 0. It reports once, at total of total."""
+    def reports(config, **run):
+        said = []
+        edit(small_sphere, "a dog", FakeGuidance(), config, _collect(said), **run)
+        return [(report.stage, report.iteration, report.total, report.losses) for report in said]
+
+    checkpoint, config = tmp_path / "c.safetensors", EditConfig(iterations=2, render_size=SIZE)
+    assert reports(dataclasses.replace(config, iterations=0)) == [("edit", 0, 0, {})]
+    assert [report[1:3] for report in reports(config, checkpoint_path=checkpoint)] == [(1, 2), (2, 2)]
+    assert reports(config, checkpoint_path=checkpoint, resume_from=checkpoint) == [("edit", 2, 2, {})]
+    assert [report[1:3] for report in reports(dataclasses.replace(config, iterations=3), resume_from=checkpoint)] == [
+        (3, 3)]
+
+
 def test_a_run_that_takes_no_step_still_leaves_its_own_checkpoint_where_another_runs_was(small_sphere, tmp_path):
     """A file at checkpoint_path that is not the one resumed from is another run's: an edit of 0 iterations, one
     resumed where it had ended, or one cancelled before its first step had left it there (for a later --resume)."""

@@ -581,7 +581,8 @@ def edit(
     receives a render from a fixed front pose at iteration 0 (fresh runs),
     every ``preview_every`` iterations and at the end; previews draw no random
     numbers, so they never change the result. ``callbacks`` gets a
-    ``Progress("edit", done, total, losses, info)`` per iteration: losses
+    ``Progress("edit", done, total, losses, info)`` per iteration (a run that takes no step, of 0 iterations or resumed
+    at its last, one with no losses, at ``total`` of ``total``): losses
     ``sds`` (the SDS surrogate; its value means nothing, its gradient is SDS),
     ``reg`` (unweighted regulariser) and ``total`` (sds + weight·reg); info
     ``t``, ``t_min``, ``t_max``, ``lr``, ``view``, ``elevation``, ``azimuth``,
@@ -938,6 +939,9 @@ def edit(
             checkpoint_at_cancel(callbacks, "edit", lambda: checkpoint(done))
         raise
     check_finite(done)  # before G_e is saved or returned
+    if done == start:  # no step taken (0 iterations, or resumed at its last): one report, at total of total; none had
+        # left the worker's row at total 0 and the CLI's progress empty
+        callbacks.progress(Progress("edit", done, config.iterations, info=memory.info()))
     if checkpoint_path is not None and (done != last_checkpoint or not Path(checkpoint_path).is_file()):
         checkpoint(done)
     if config.preview_every and done % config.preview_every != 0:
