@@ -809,6 +809,37 @@ def test_resume_refuses_another_prompt_or_grid(small_sphere, make_sphere_grid, t
     edit(small_sphere, "a dog", tiny_guidance, longer, resume_from=checkpoint)
 
 
+def test_resume_refuses_an_initial_grid_of_the_same_features_that_renders_otherwise(small_sphere, tmp_path):
+    """The fingerprint of G_i hashes its features alone: a G_i of the same features in another box, or with another
+    activation or density scale (it renders another object), had been resumed against silently, the run going on
+    from a G_e of one grid under the regulariser of the other. Refused, naming what differs; a checkpoint of the
+    fingerprint's old form (written before these were compared) still resumes where nothing else differs."""
+    from voxe_core.tensorio import FormatError
+
+    checkpoint, config = tmp_path / "c.safetensors", EditConfig(iterations=1, render_size=SIZE)
+    edit(small_sphere, "a dog", FakeGuidance(), config, checkpoint_path=checkpoint)
+    features = small_sphere.features.detach().clone()
+    low, high = (corner.tolist() for corner in (small_sphere.bbox_min, small_sphere.bbox_max))
+    others = [
+        (VoxelGrid(20, [1.25 * v for v in low], [1.25 * v for v in high], features=features.clone(),
+                   density_scale=small_sphere.density_scale),
+         f"box {[1.25 * v for v in low]} to {[1.25 * v for v in high]} (the checkpoint's {low} to {high})"),
+        (VoxelGrid(20, low, high, "softplus", small_sphere.density_scale, features=features.clone()),
+         "activation 'softplus' (the checkpoint's 'relu')"),
+        (VoxelGrid(20, low, high, density_scale=small_sphere.density_scale * 2, features=features.clone()),
+         f"density_scale {small_sphere.density_scale * 2} (the checkpoint's {small_sphere.density_scale})"),
+    ]
+    longer = dataclasses.replace(config, iterations=2)
+    for other, differs in others:
+        assert edit_module.initial_fingerprint(other) == edit_module.initial_fingerprint(small_sphere)
+        with pytest.raises(FormatError, match=re.escape(f"{checkpoint}: checkpoint was made from an initial grid of "
+                                                        f"the same features that renders otherwise: its {differs}")):
+            edit(other, "a dog", FakeGuidance(), longer, resume_from=checkpoint)
+    same = VoxelGrid(20, low, high, density_scale=small_sphere.density_scale, features=features.clone())
+    resumed = edit(same, "a dog", FakeGuidance(), longer, resume_from=checkpoint)
+    assert torch.equal(resumed.features, edit(small_sphere, "a dog", FakeGuidance(), longer).features)
+
+
 @pytest.mark.parametrize("field, value, message", [
     ("resolution", 5, "checkpoint grid is 5, the initial grid (20, 20, 20)"),
     ("resolution", [20, 20], "checkpoint grid is (20, 20), the initial grid (20, 20, 20)"),

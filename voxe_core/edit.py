@@ -336,7 +336,9 @@ def check_cameras_outside(grid: VoxelGrid, config: EditConfig, centre: torch.Ten
 
 
 def initial_fingerprint(grid: VoxelGrid) -> str:
-    """Short SHA-256 of G_i's features: a checkpoint only resumes against the grid it started from."""
+    """Short SHA-256 of G_i's features: a checkpoint only resumes against the grid it started from (its box and
+    header, which decide how those features render, :func:`check_resume` compares with the checkpoint's grid's,
+    so a checkpoint of this fingerprint's one form resumes where nothing else differs)."""
     data = grid.features.detach().to("cpu", torch.float32).contiguous().numpy().tobytes()
     return hashlib.sha256(data).hexdigest()[:32]
 
@@ -457,6 +459,10 @@ def check_resume(resume_from, initial_grid: VoxelGrid, prompt: str, config: Edit
         raise FormatError(f"{resume_from}: checkpoint was made for the prompt {meta.get('prompt')!r}, not {prompt!r}")
     if meta.get("initial_sha256") != initial_fingerprint(initial_grid):
         raise FormatError(f"{resume_from}: checkpoint was made from a different initial grid")
+    if differs := _renders_otherwise(resume_from, meta, initial_grid):
+        raise FormatError(f"{resume_from}: checkpoint was made from an initial grid of the same features that renders "
+                          f"otherwise: its {', its '.join(differs)}; resume against the grid it was made from, or "
+                          "start afresh")
     # The guidance's model_id, its name as asked for (a hub id, a folder as given, the worker's "tiny"): the same
     # on every machine. An older worker's checkpoint, which recorded the folder "tiny" resolved to there, is
     # refused too (the worker starts such a stage over): that folder is no model a run here is asked for.
@@ -475,7 +481,7 @@ def check_resume(resume_from, initial_grid: VoxelGrid, prompt: str, config: Edit
     if config.regulariser in IMAGE_REGULARISERS and input_views is not None:
         images, cameras = torch.as_tensor(input_views[0]), input_views[1]
         check_views(images, cameras, "input view images")
-        recorded = _recorded_views(resume_from)  # (none in a checkpoint older than the record: it resumes)
+        recorded = _recorded(resume_from, "views")["views"]  # (none in a checkpoint older than the record: resumes)
         if recorded is not None and not same_views(recorded, views_summary(images, cameras)):
             raise FormatError(f"{resume_from}: checkpoint was made against other input views (images or cameras) "
                               f"for its {config.regulariser} regulariser; resume with the views it was made from, or "
@@ -483,15 +489,34 @@ def check_resume(resume_from, initial_grid: VoxelGrid, prompt: str, config: Edit
     return meta
 
 
-def _recorded_views(path) -> torch.Tensor | None:
-    """The :func:`~voxe_core.reconstruct.views_summary` an edit checkpoint holds (None: none), read alone."""
+def _recorded(path, *names: str) -> dict[str, torch.Tensor | None]:
+    """The tensors ``names`` an edit checkpoint holds (None: not held), read alone: the
+    :func:`~voxe_core.reconstruct.views_summary` ``views``, G_e's box."""
     from safetensors import SafetensorError, safe_open
 
     try:
         with safetensors_name(path) as name, safe_open(name, framework="pt") as handle:
-            return handle.get_tensor("views") if "views" in handle.keys() else None
+            return {held: handle.get_tensor(held) if held in handle.keys() else None for held in names}
     except (SafetensorError, OSError, ValueError) as exc:
         raise FormatError(f"{path}: not a readable safetensors file ({exc})") from exc
+
+
+def _renders_otherwise(path, meta: dict, initial_grid: VoxelGrid) -> list[str]:
+    """What of ``initial_grid`` beside its features (which :func:`initial_fingerprint` hashes) differs from the G_i the
+    edit checkpoint at ``path`` (header ``meta``) started from, each as ``"<what> <G_i's> (the checkpoint's <its>)"``:
+    its box and its header's (activation, density scale, kind, a scene grid's extent, samples and frame); G_e keeps
+    G_i's, so the checkpoint's own grid says them. What it does not record (older) is taken as G_i's."""
+    differs = []
+    box = _recorded(path, "bbox_min", "bbox_max")
+    if all(corner is not None for corner in box.values()):
+        ours = [corner.detach().float().cpu().tolist() for corner in (initial_grid.bbox_min, initial_grid.bbox_max)]
+        theirs = [corner.float().tolist() for corner in box.values()]
+        if ours != theirs:
+            differs.append(f"box {ours[0]} to {ours[1]} (the checkpoint's {theirs[0]} to {theirs[1]})")
+    for name, value in initial_grid.header().items():
+        if name != "resolution" and meta.get(name, value) != value:  # (the resolution: check_resume's own message)
+            differs.append(f"{name} {value!r} (the checkpoint's {meta[name]!r})")
+    return differs
 
 
 def _check_views(input_views, device):
