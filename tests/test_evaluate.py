@@ -350,6 +350,12 @@ def test_the_footprint_on_a_scene_grid_follows_its_contracted_sampling():
     assert bool(changed.any()) and not bool((changed & ~footprint).any())  # every changed pixel is in the footprint
     kept = preservation(images, recon, EditSample("hat", "x", refined, mask), initial, config, centre)
     assert kept["psnr"] == 100.0 and kept["ssim"] == 1.0
+    from pathlib import Path
+
+    from voxe_core.metrics import PSNR_CAP_DB
+
+    readme = " ".join((Path(__file__).parent.parent / "README.md").read_text().split())
+    assert f"counts as {PSNR_CAP_DB:g} dB (`metrics.PSNR_CAP_DB`)" in readme  # (it had not said why 100.00)
     assert kept["kept_fraction"] == pytest.approx(1.0 - float(footprint.float().mean())) and kept["kept_fraction"] > 0.3
 
 
