@@ -60,6 +60,8 @@ went (:func:`reap_orphaned_uploads` deletes them), and so is a ``_probe/<uuid>``
 probe left (its delete failed) as old: only ``_probe/ready`` is written now. An unfinished write started as long ago
 under a row that lives on, or in no ``<id>/`` folder, is abandoned (``Storage.discard_unfinished``).
 
+An Idempotency-Key's record is deleted once ``VOXE_IDEMPOTENCY_RETENTION_S`` old (:func:`reap_idempotency_records`).
+
 The API runs :func:`reap_orphaned_jobs` at startup and then every ``VOXE_REAPER_INTERVAL_S`` in a
 background thread (:class:`Reaper`). Every update is conditional on the row still being what the
 reaper saw, so several API processes may reap side by side and a worker that reports in at the
@@ -73,14 +75,14 @@ import threading
 import time
 from datetime import datetime, timedelta
 
-from sqlalchemy import and_, func, or_, select
+from sqlalchemy import and_, delete, func, or_, select
 
 from voxe_service.broker import waiting_tasks
 from voxe_service.db import session_scope, sync_clock
 from voxe_service.failing import FailingStreak
 from voxe_service.jobs import finish_jobs
-from voxe_service.models import (CANCELED, EVALUATE, FAILED, PROCESSING, QUEUED, RUNNING, Job, JobEvent,
-                                 Reconstruction, Scene, WorkerHeartbeat, system_now, utcnow)
+from voxe_service.models import (CANCELED, EVALUATE, FAILED, PROCESSING, QUEUED, RUNNING, IdempotencyRecord, Job,
+                                 JobEvent, Reconstruction, Scene, WorkerHeartbeat, system_now, utcnow)
 from voxe_service.queue import (QueueUnavailable, get_queue, is_sql_broker, requeue_interrupted, requeue_limit_error,
                                  send_ingest_again, send_queued_again)
 from voxe_service.scenes import fail_scene
@@ -91,7 +93,8 @@ from voxe_service.storage import (JOBS_PREFIX, PROBE_KEY, PROBES_PREFIX, RECONST
 log = logging.getLogger("voxe.reaper")
 
 UPLOAD_SWEEP_INTERVAL_S = 3600.0
-"""How often a reaper runs :func:`reap_orphaned_uploads`: it lists every stored object, too much for each pass."""
+"""How often a reaper runs :func:`reap_orphaned_uploads` (it lists every stored object, too much for each pass) and
+:func:`reap_idempotency_records` (a day's retention needs no finer grain than this)."""
 
 LOST_MESSAGE_SETTING = "VOXE_JOB_LOST_MESSAGE_TIMEOUT_S"
 """Named in the reason of each re-send of a job whose message was taken as lost: what counts them."""
@@ -312,6 +315,21 @@ def reap_orphaned_scenes(settings: Settings, now: datetime | None = None) -> lis
     return reaped
 
 
+def reap_idempotency_records(settings: Settings, now: datetime | None = None) -> int:
+    """Delete the Idempotency-Key records created ``idempotency_retention_s`` ago; returns how many. A client sends a
+    key with every upload, job, evaluation and sweep: kept for good, they had grown the table for good.
+
+    A pending one goes too: a record is pending only while its request answers, so one pending that long is a dead
+    request's (its job or scene the reaper has sent or failed since). One whose resource was deleted stays as long as
+    the others: until then a retry is told that it was deleted ("use a new key"), not given a new one unasked."""
+    cutoff = (now or utcnow()) - timedelta(seconds=settings.idempotency_retention_s)
+    with session_scope() as session:
+        deleted = session.execute(delete(IdempotencyRecord).where(IdempotencyRecord.created_at < cutoff)).rowcount
+    if deleted:
+        log.info("reaper: %d Idempotency-Key record(s) older than VOXE_IDEMPOTENCY_RETENTION_S deleted", deleted)
+    return deleted
+
+
 ORPHANS_SWEPT = ((SCENES_PREFIX, Scene, "scene"), (JOBS_PREFIX, Job, "job"),
                  (RECONSTRUCTIONS_PREFIX, Reconstruction, "reconstruction"))
 """The key layout's prefixes :func:`reap_orphaned_uploads` sweeps, each with the model whose row records an id."""
@@ -424,6 +442,7 @@ class Reaper:
                 get_storage(self.settings).discard_prefixes(*prefixes)
                 swept = self._uploads_swept_at
                 if swept is None or time.monotonic() - swept >= UPLOAD_SWEEP_INTERVAL_S:
+                    reap_idempotency_records(self.settings)
                     reap_orphaned_uploads(self.settings)  # last: a storage outage keeps the rest of the pass
                     self._uploads_swept_at = time.monotonic()
             except Exception as exc:  # noqa: BLE001 - a failed pass is retried on the next one

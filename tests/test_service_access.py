@@ -1775,3 +1775,42 @@ def test_readyz_with_authentication_off_shows_its_details_only_to_a_local_caller
                                                    "machine, and this one "), answer.json()
         assert why in answer.json()["details"]
         assert local_client.get("/v1/scenes", headers=headers).status_code == 401  # (as the API itself answers it)
+
+
+def test_idempotency_records_go_once_past_their_retention_and_a_retry_then_makes_anew(db):  # noqa: F811
+    """voxe_client sends an Idempotency-Key with every upload, job, evaluation and sweep: their records had been kept
+    for good. The reaper's pass deletes those created VOXE_IDEMPOTENCY_RETENTION_S (a day) ago, pending ones
+    included (a request answers in far less), and keeps the younger ones, which still replay."""
+    from sqlalchemy import select
+
+    from api.auth import Idempotency
+    from api.reaper import Reaper, reap_idempotency_records
+    from voxe_service.db import session_scope
+    from voxe_service.models import LOCAL_KEY_ID, ApiKey, IdempotencyRecord, Job, utcnow
+
+    assert db.idempotency_retention_s == 24 * 3600.0
+    job = add_job(add_scene(), "succeeded", 0)
+    ages = {"old": (db.idempotency_retention_s + 60, False), "old-pending": (db.idempotency_retention_s + 60, True),
+            "young": (db.idempotency_retention_s - 60, False)}
+    with session_scope() as session:
+        local = session.get(ApiKey, LOCAL_KEY_ID)
+        for name, (age_s, pending) in ages.items():
+            record = Idempotency(name, "0" * 64, "jobs").record(session, local, job)
+            record.created_at, record.pending = utcnow() - timedelta(seconds=age_s), pending
+
+    def kept() -> list[str]:
+        with session_scope() as session:
+            return sorted(session.scalars(select(IdempotencyRecord.idempotency_key)))
+
+    reaper = Reaper(db).start()  # its first pass, at startup
+    try:
+        deadline = time.monotonic() + 30
+        while kept() != ["young"] and time.monotonic() < deadline:
+            time.sleep(0.1)
+    finally:
+        reaper.stop()
+    assert kept() == ["young"]
+    assert reap_idempotency_records(db, utcnow() + timedelta(seconds=120)) == 1  # the young one, a retention later
+    with session_scope() as session:
+        local = session.get(ApiKey, LOCAL_KEY_ID)
+        assert Idempotency("old", "0" * 64, "jobs").replayed(session, local, Job) is None  # a retry now runs anew

@@ -445,6 +445,7 @@ def test_a_reaper_whose_passes_fail_logs_one_traceback_then_a_line_each_and_says
     monkeypatch.setattr(reaper, "reap_orphaned_scenes", scenes)
     monkeypatch.setattr(reaper, "reap_orphaned_jobs", lambda settings: [])
     monkeypatch.setattr(reaper, "reap_orphaned_uploads", lambda settings: [])
+    monkeypatch.setattr(reaper, "reap_idempotency_records", lambda settings: 0)
     monkeypatch.setattr(reaper, "get_storage", lambda settings: types.SimpleNamespace(
         discard_prefixes=lambda *prefixes: None))
     with caplog.at_level(logging.INFO, logger="voxe.reaper"):
@@ -463,13 +464,13 @@ def test_a_reaper_whose_passes_fail_logs_one_traceback_then_a_line_each_and_says
 
 def test_the_reaper_sweeps_for_unrecorded_uploads_at_its_start_then_hourly_not_each_pass(monkeypatch):
     """The sweep lists every scene's objects (and reads their rows): at the start, then each UPLOAD_SWEEP_INTERVAL_S,
-    not on every pass a minute apart."""
+    not on every pass a minute apart; so is the Idempotency-Key records' retention kept."""
     import threading
     import types
 
     import api.reaper as reaper
 
-    passes, sweeps, enough = [], [], threading.Event()
+    passes, sweeps, records, enough = [], [], [], threading.Event()
 
     def jobs(settings):
         passes.append(1)
@@ -481,19 +482,20 @@ def test_the_reaper_sweeps_for_unrecorded_uploads_at_its_start_then_hourly_not_e
     monkeypatch.setattr(reaper, "reap_orphaned_scenes", lambda settings: [])
     monkeypatch.setattr(reaper, "reap_orphaned_jobs", jobs)
     monkeypatch.setattr(reaper, "reap_orphaned_uploads", lambda settings: sweeps.append(1) or [])
+    monkeypatch.setattr(reaper, "reap_idempotency_records", lambda settings: records.append(1) or 0)
     monkeypatch.setattr(reaper, "get_storage", lambda settings: types.SimpleNamespace(
         discard_prefixes=lambda *prefixes: None))
     running = reaper.Reaper(types.SimpleNamespace(reaper_interval_s=0.01)).start()
     try:
         assert enough.wait(10)
-        assert len(sweeps) == 1
+        assert len(sweeps) == len(records) == 1
         monkeypatch.setattr(reaper, "UPLOAD_SWEEP_INTERVAL_S", 0.0)  # (an hour passed)
         passes.clear()
         enough.clear()
         assert enough.wait(10)
     finally:
         running.stop()
-    assert len(sweeps) >= 4
+    assert len(sweeps) >= 4 and len(records) >= 4
 
 
 def test_reading_the_database_clock_while_postgresql_is_down_logs_one_traceback_then_a_line_each(monkeypatch,

@@ -140,6 +140,10 @@ class Settings(BaseSettings):
     # unfinished S3 multipart upload included, is deleted by the reaper once this old: longer than any upload takes
     # to store, so one still being written (or about to be recorded) is never taken.
     orphaned_upload_age_s: float = Field(24 * 3600.0, gt=0)
+    # A request's Idempotency-Key record (api.auth.Idempotency) is deleted by the reaper once this old, so the table
+    # does not grow for good (voxe_client sends a key with every upload, job, evaluation and sweep): a retry with that
+    # key afterwards is a new request. Far longer than a client's retries take (voxe_client's: minutes).
+    idempotency_retention_s: float = Field(24 * 3600.0, gt=0)
 
     # --- webhooks (voxe_service.webhooks; sent from the API process, api/webhooks.py)
     webhook_allow_networks: str = ""  # comma-separated CIDRs a webhook may target though private (e.g. 10.0.0.0/8)
