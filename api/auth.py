@@ -309,12 +309,18 @@ def check_upload_bytes(session: Session, key: ApiKey, settings: Settings, adding
     ``including_new``: the new scene's row (of ``adding`` bytes) is already flushed into the sum.
     """
     limit = upload_limit(key, settings)
-    if adding > limit:
-        raise HTTPException(status.HTTP_413_CONTENT_TOO_LARGE,
-                            f"this upload stores {adding} bytes, more than the whole upload quota of key {key.name!r} "
-                            f"({limit} bytes: VOXE_MAX_UPLOAD_BYTES_PER_KEY or the key's own)")
     total = stored_bytes(session, key.id)
     stored = total - adding if including_new else total
+    if adding > limit:
+        # As over the job quota: the advice names how to raise this key's own (it had named none), to a size that
+        # fits this upload beside what the key stores.
+        raise_it = ("raise VOXE_MAX_UPLOAD_BYTES_PER_KEY" if key.id == LOCAL_KEY_ID else "have the service's admin "
+                    f"raise the key's own ('python -m api.admin update-key {key.id} --max-upload-bytes "
+                    f"{stored + adding}')")
+        raise HTTPException(status.HTTP_413_CONTENT_TOO_LARGE,
+                            f"this upload stores {adding} bytes, more than the whole upload quota of key {key.name!r} "
+                            f"({limit} bytes: VOXE_MAX_UPLOAD_BYTES_PER_KEY or the key's own), so it can never be "
+                            f"accepted: {raise_it}")
     if stored + max(adding, 1) > limit:
         this = f"this upload adds {adding}" if adding else "before this upload is read"
         raise QuotaExceeded(f"quota of upload bytes exceeded: key {key.name!r} stores {stored} bytes of scenes, "

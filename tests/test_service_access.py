@@ -1085,6 +1085,35 @@ def test_upload_quota_is_429_and_leaves_nothing(auth_client, mic_zip, root):  # 
     assert auth_client.get("/v1/scenes", headers=bearer(tiny)).json()["total"] == 0 and staged(root) == []
 
 
+def test_an_upload_over_a_keys_whole_upload_quota_says_how_to_raise_that_keys_own(auth_client, mic_zip, capsys):
+    """The 413 for an upload larger than the key's whole byte quota gave no advice (the job quota's 422 names
+    update-key): it names the command raising this key's own to what fits it, or, for the local key, the setting."""
+    from fastapi import HTTPException
+
+    from api import admin
+    from api.auth import check_upload_bytes
+    from voxe_service.db import session_scope
+    from voxe_service.models import LOCAL_KEY_ID, ApiKey
+    from voxe_service.settings import get_settings
+
+    _, probe = _create_key("probe")
+    size = _upload(auth_client, mic_zip, bearer(probe)).json()["size_bytes"]
+    key_id, tiny = _create_key("tiny", max_upload_bytes=size - 1)
+    alone = _upload(auth_client, mic_zip, bearer(tiny))
+    assert (alone.status_code, alone.json()["detail"]) == (413, (
+        f"this upload stores {size} bytes, more than the whole upload quota of key 'tiny' ({size - 1} bytes: "
+        "VOXE_MAX_UPLOAD_BYTES_PER_KEY or the key's own), so it can never be accepted: have the service's admin "
+        f"raise the key's own ('python -m api.admin update-key {key_id} --max-upload-bytes {size}')"))
+    assert admin.main(["update-key", key_id, "--max-upload-bytes", str(size)]) == 0  # what it says, run as said
+    capsys.readouterr()
+    assert _upload(auth_client, mic_zip, bearer(tiny)).status_code == 201
+    settings = get_settings()
+    with session_scope() as session, pytest.raises(HTTPException) as refused:
+        check_upload_bytes(session, session.get(ApiKey, LOCAL_KEY_ID), settings, settings.max_upload_bytes_per_key + 1)
+    assert refused.value.status_code == 413
+    assert refused.value.detail.endswith("so it can never be accepted: raise VOXE_MAX_UPLOAD_BYTES_PER_KEY")
+
+
 def test_an_upload_over_the_quota_is_refused_before_its_bytes_are_stored(auth_client, mic_zip, monkeypatch):
     """The packed archive's size is known before it is stored: an upload over the key's whole quota (413), or over
     what is left of it (429), had been written to storage and then deleted (GBs sent to S3 for nothing). An upload
