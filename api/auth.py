@@ -221,7 +221,7 @@ class RequireKey:
         settings = get_settings()
         if not settings.auth_enabled:
             if (why := not_local(scope, settings)) is None:
-                return await self.app(scope, receive, send)
+                return await self._unless_upload_refused(scope, receive, send, LOCAL_KEY_ID)
             detail = (f"authentication is off (VOXE_AUTH={settings.auth}, VOXE_HOST={settings.host}), so only "
                       f"loopback connections are served, and {why}")
             response = JSONResponse({"detail": detail}, status.HTTP_401_UNAUTHORIZED, headers=CHALLENGE)
@@ -241,6 +241,20 @@ class RequireKey:
             response = JSONResponse({"detail": refused}, status.HTTP_401_UNAUTHORIZED, headers=CHALLENGE)
             return await response(scope, receive, send)
         scope.setdefault("state", {})["api_key_id"] = key_id
+        await self._unless_upload_refused(scope, receive, send, key_id)
+
+    async def _unless_upload_refused(self, scope, receive, send, key_id: str):
+        """The app, unless the request is an upload its key has no byte of quota left for: then that 429, before
+        the body is read (FastAPI receives and spools an upload's form whole before its route runs, which had
+        refused it so only once the GBs were in)."""
+        if scope["method"] == "POST" and route_path(scope).rstrip("/") == "/v1/scenes":
+            try:
+                refused = await anyio.to_thread.run_sync(upload_refused_unread, key_id, Headers(scope=scope))
+            except DATABASE_UNAVAILABLE as exc:
+                return await unavailable(None, exc)(scope, receive, send)
+            if refused is not None:
+                response = JSONResponse({"detail": refused.detail}, refused.status_code, headers=refused.headers)
+                return await response(scope, receive, send)
         await self.app(scope, receive, send)
 
 
@@ -326,6 +340,24 @@ def check_upload_bytes(session: Session, key: ApiKey, settings: Settings, adding
         raise QuotaExceeded(f"quota of upload bytes exceeded: key {key.name!r} stores {stored} bytes of scenes, "
                             f"{this}, the limit is {limit} (VOXE_MAX_UPLOAD_BYTES_PER_KEY or the key's own); delete "
                             "scenes to free space", None)
+
+
+def upload_refused_unread(key_id: str, headers: Headers) -> QuotaExceeded | None:
+    """The 429 of an upload whose key's quota has no byte left (:func:`check_upload_bytes` adding nothing: every
+    upload stores one), asked before its body is read; None where there is room, or where its Idempotency-Key has
+    a record (a retry: the route replays what its first request created, whatever the quota)."""
+    keys = headers.getlist(IDEMPOTENCY_HEADER)
+    with get_sessionmaker()() as session:
+        key = session.get(ApiKey, key_id)
+        if key is None or (keys and session.scalar(select(IdempotencyRecord.id).where(
+                IdempotencyRecord.owner_key_id == key_id, IdempotencyRecord.endpoint == "scenes",
+                IdempotencyRecord.idempotency_key.in_([as_sent(k) for k in keys]))) is not None):
+            return None
+        try:
+            check_upload_bytes(session, key, get_settings(), 0)
+        except QuotaExceeded as exc:
+            return exc
+    return None
 
 
 # ------------------------------------------------------------------ Idempotency-Key

@@ -1114,6 +1114,79 @@ def test_an_upload_over_a_keys_whole_upload_quota_says_how_to_raise_that_keys_ow
     assert refused.value.detail.endswith("so it can never be accepted: raise VOXE_MAX_UPLOAD_BYTES_PER_KEY")
 
 
+def _post_upload_counting(app, token: str | None, total_bytes: int, idempotency_key: str) -> tuple[int, int, bytes]:
+    """POST /v1/scenes a multipart upload of ``total_bytes`` (one zip of zeros, sent a MiB a message) to the ASGI
+    app directly; (the status, the body bytes the app took in, the answer's body)."""
+    boundary = b"b0undary"
+    head = (b"--" + boundary + b'\r\nContent-Disposition: form-data; name="archive"; filename="big.zip"\r\n'
+            b"Content-Type: application/zip\r\n\r\n")
+    tail = b"\r\n--" + boundary + b"--\r\n"
+    chunk = 1 << 20
+    sizes = [len(head), *[chunk] * ((total_bytes - len(head) - len(tail)) // chunk), len(tail)]
+    blocks = iter([head, *(bytes(size) for size in sizes[1:-1]), tail])
+    taken, answer = [0], {"status": 0, "body": b""}
+    length = len(head) + sum(sizes[1:-1]) + len(tail)
+
+    async def receive():
+        block = next(blocks, None)
+        if block is None:
+            return {"type": "http.request", "body": b"", "more_body": False}
+        taken[0] += len(block)
+        return {"type": "http.request", "body": block, "more_body": True}
+
+    async def send(message):
+        if message["type"] == "http.response.start":
+            answer["status"] = message["status"]
+        elif message["type"] == "http.response.body":
+            answer["body"] += message.get("body", b"")
+
+    scope = {"type": "http", "asgi": {"version": "3.0"}, "http_version": "1.1", "method": "POST", "scheme": "http",
+             "path": "/v1/scenes", "raw_path": b"/v1/scenes", "root_path": "", "query_string": b"",
+             "server": ("testserver", 80), "client": ("127.0.0.1", 5000),
+             "headers": [(b"host", b"testserver"), *([(b"authorization", f"Bearer {token}".encode())] if token else []),
+                         (b"idempotency-key", idempotency_key.encode()), (b"content-length", str(length).encode()),
+                         (b"content-type", b"multipart/form-data; boundary=" + boundary)]}
+    anyio.run(app, scope, receive, send)
+    return answer["status"], taken[0], answer["body"]
+
+
+@BOTH_DATABASES
+def test_an_upload_to_a_key_with_no_quota_left_is_refused_before_its_body_is_read(auth_client, mic_zip, root):  # noqa: F811
+    """FastAPI receives and spools an upload's whole form before its route runs: the 429 of a key whose upload quota
+    is used up ("before this upload is read") had come once all of it was in (a 200 MB upload: 200 MB received and
+    spooled to disk for a refusal). It comes before the first body byte now; a retry whose Idempotency-Key has a
+    record still replays what its first request created."""
+    _, probe = _create_key("probe")
+    size = _upload(auth_client, mic_zip, bearer(probe)).json()["size_bytes"]
+    _, token = _create_key("full", max_upload_bytes=size)
+    first = _upload(auth_client, mic_zip, {**bearer(token), "Idempotency-Key": "first"})
+    assert first.status_code == 201
+    code, taken, body = _post_upload_counting(auth_client.app, token, 200 << 20, "another")
+    assert (code, taken) == (429, 0), (code, taken, body[:300])
+    assert f"stores {size} bytes of scenes, before this upload is read" in body.decode()
+    retry = _upload(auth_client, mic_zip, {**bearer(token), "Idempotency-Key": "first"})
+    assert (retry.status_code, retry.json()["id"]) == (200, first.json()["id"])
+    assert auth_client.get("/v1/scenes", headers=bearer(token)).json()["total"] == 1 and staged(root) == []
+
+
+def test_an_upload_to_the_local_key_with_no_quota_left_is_refused_before_its_body_is_read(local_client, mic_zip,
+                                                                                              monkeypatch):
+    """With authentication off every request acts as the local key, held to VOXE_MAX_UPLOAD_BYTES_PER_KEY: its
+    used-up quota is refused before the body is read too."""
+    from voxe_service.settings import get_settings
+
+    size = _upload(local_client, mic_zip).json()["size_bytes"]
+    monkeypatch.setenv("VOXE_MAX_UPLOAD_BYTES_PER_KEY", str(size))
+    get_settings.cache_clear()
+    try:
+        code, taken, body = _post_upload_counting(local_client.app, None, 8 << 20, "another")
+    finally:
+        monkeypatch.delenv("VOXE_MAX_UPLOAD_BYTES_PER_KEY")
+        get_settings.cache_clear()
+    assert (code, taken) == (429, 0), (code, taken, body[:300])
+    assert f"stores {size} bytes of scenes, before this upload is read" in body.decode()
+
+
 def test_an_upload_over_the_quota_is_refused_before_its_bytes_are_stored(auth_client, mic_zip, monkeypatch):
     """The packed archive's size is known before it is stored: an upload over the key's whole quota (413), or over
     what is left of it (429), had been written to storage and then deleted (GBs sent to S3 for nothing). An upload
