@@ -477,6 +477,38 @@ def test_the_worker_edits_a_scene_grid_with_the_real_scene_schedule(service, mon
                                  backbone, CHECKPOINT_EVERY)
 
 
+@pytest.mark.parametrize("tiny", [True, False])
+def test_the_workers_edit_with_a_tiny_model_folder_says_it_is_a_smoke_test(service, monkeypatch, tmp_path, tiny):
+    """``VOXE_SDS_MODEL`` a folder ``voxe build-tiny-model`` wrote: the job had shown its path alone, nothing saying
+    the edit is random-weight plumbing. The worker loading it says so once (its redelivery not again), as a warning
+    event and in ``result.smoke_test``; a real-looking folder without the mark, neither."""
+    import json
+
+    import voxe_core.edit
+    from voxe_core.tiny_sd import build_tiny_stable_diffusion
+    from voxe_service.settings import get_settings
+    from worker import tasks
+
+    folder = build_tiny_stable_diffusion(tmp_path / "sd")
+    if not tiny:
+        index = json.loads((folder / "model_index.json").read_text())
+        (folder / "model_index.json").write_text(json.dumps({**index, "_name_or_path": "someone/real-sd"}))
+        (folder / "README.md").unlink(missing_ok=True)
+    monkeypatch.setattr(get_settings(), "sds_model", str(folder))
+    client, scene_id = service
+    job = _reconstructed_job(client, scene_id, "relu_field")
+    monkeypatch.setattr(voxe_core.edit, "edit", lambda initial, *args, **kwargs: initial.clone_grid())
+    assert tasks.edit_task.apply(args=(job["id"],)).get()["state"] == "done"
+    tasks.edit_task.apply(args=(job["id"],)).get()  # redelivered
+    note = (f"SMOKE TEST: the sds model {str(folder)!r} is a random-weight smoke-test Stable Diffusion (voxe "
+            "build-tiny-model): what is made with it proves the plumbing only and says nothing about edit quality")
+    warnings = [(e["stage"], e["detail"]) for e in client.get(f"/v1/jobs/{job['id']}/events").json()
+                if e["kind"] == "warning"]
+    result = client.get(f"/v1/jobs/{job['id']}").json()["result"]
+    assert warnings == ([("edit", note)] if tiny else [])
+    assert result.get("smoke_test") == ({"sds": note} if tiny else None)
+
+
 @pytest.mark.parametrize("setting", [None, "true"])
 def test_the_workers_edit_marches_fused_as_its_setting_says(service, monkeypatch, setting):
     """``VOXE_FUSED_MARCHER`` (a worker's, off by default) reaches the edit's render config, and only it: the rest

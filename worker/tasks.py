@@ -758,6 +758,7 @@ def _edit(job: Job, settings, device: str, storage) -> None:
     from voxe_core.render import fused_marcher_runs_on
 
     guidance = runtime.get_guidance(job.sds_model, device, settings, job)  # first: a missing model fails fast
+    runtime.say_smoke_test_model(job, "edit", "sds", job.sds_model)
     rec = runtime.load_reconstruction(job.reconstruction_id)
     initial = fetch_grid(job.id, "initial_grid.safetensors", settings, storage, recorded_initial_grid(job.id, rec))
     config = _record_edit_schedule(job, initial.kind, settings)  # SPEC §5's schedule for a scene G_i
@@ -824,6 +825,7 @@ def _refine(job: Job, settings, device: str, storage) -> None:
     from voxe_core.refine.storage import save_mask, save_probabilities
 
     guidance = runtime.get_guidance(job.attention_model, device, settings, job)
+    runtime.say_smoke_test_model(job, "refine", "attention", job.attention_model)
     rec = runtime.load_reconstruction(job.reconstruction_id)
     initial = fetch_grid(job.id, "initial_grid.safetensors", settings, storage, recorded_initial_grid(job.id, rec))
     edited = fetch_grid(job.id, "edited_grid.safetensors", settings, storage)
