@@ -3061,3 +3061,28 @@ def test_an_evaluation_that_fails_leaves_the_earlier_ring_renders_and_nothing_of
         main(command + ["--views", "3"])
     assert {p.relative_to(out): p.read_bytes() for p in out.rglob("*") if p.is_file()} == before
     assert sorted(p.name for p in out.iterdir()) == ["evaluation.json", "evaluation.md", "ring"]
+
+
+@pytest.mark.parametrize("smoke_test", [True, False])
+def test_commands_writing_from_a_smoke_test_edit_carry_its_note(sphere_grid, tmp_path, capsys, smoke_test):
+    """A grid `voxe edit` made with the random-weight tiny model carries a `smoke_test` note, which loading passes
+    over: convert-grid's rewritten grid and render's manifest had dropped it, and render, turntable and export-mesh
+    said nothing. Each now says so once on stderr and carries the note where it writes a grid or a manifest; a grid
+    without the note, neither."""
+    from voxe_core.backbones import grid_notes
+
+    note = "sd is a random-weight smoke-test Stable Diffusion (voxe build-tiny-model): plumbing only"
+    grid = tmp_path / "edited.safetensors"
+    sphere_grid.save(grid, notes={"smoke_test": note} if smoke_test else None)
+    for command in (["convert-grid", str(grid), "--out", str(tmp_path / "dense.safetensors"), "--dense"],
+                    ["render", str(grid), "--ring", "2", "--size", "8", "--out", str(tmp_path / "views")],
+                    ["turntable", str(grid), "--frames", "2", "--size", "16", "--out", str(tmp_path / "t.gif")],
+                    ["export-mesh", str(grid), "--resolution", "16", "--out", str(tmp_path / "m.ply")]):
+        assert main([*command, "--quiet", "--device", "cpu"] if command[0] != "convert-grid"
+                    else [*command, "--quiet"]) == 0, command
+        said = [line for line in capsys.readouterr().err.splitlines() if "SMOKE TEST" in line]
+        assert said == ([f"voxe {command[0]}: SMOKE TEST: {grid} was edited with a smoke-test model: {note}"]
+                        if smoke_test else []), command
+    assert grid_notes(tmp_path / "dense.safetensors") == ({"smoke_test": note} if smoke_test else {})
+    manifest = json.loads((tmp_path / "views" / "render.json").read_text())
+    assert manifest.get("smoke_test") == (note if smoke_test else None)

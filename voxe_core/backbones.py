@@ -25,7 +25,7 @@ from voxe_core.constants import FLOAT32_MAX
 from voxe_core.grid import DEFAULT_BOX, GRID_KIND, VoxelGrid, ray_box_intersection
 from voxe_core.gridfile import GRID_FORMAT_VERSION, dense_tensors, float_dtype_problem
 from voxe_core.scene_grid import SceneGrid, apply_frame, scene_frame
-from voxe_core.tensorio import FormatError, load_tensors
+from voxe_core.tensorio import FormatError, load_header, load_tensors
 
 BACKBONES: dict[str, type[VoxelGrid]] = {cls.kind: cls for cls in (VoxelGrid, SceneGrid)}
 BACKBONE_CHOICES = ("auto", *BACKBONES)  # what a user may ask for: presets.BACKBONE_CHOICES (which cannot import this)
@@ -94,6 +94,17 @@ def load_grid(path) -> VoxelGrid:
         return grid_from_state(tensors, meta)
     except FormatError as exc:
         raise FormatError(f"{path}: {exc}") from None
+
+
+GRID_NOTES = ("smoke_test",)
+"""The header entries ``VoxelGrid.save``'s ``notes`` write on what made a grid (``voxe edit``'s ``smoke_test``)."""
+
+
+def grid_notes(path) -> dict:
+    """The notes (:data:`GRID_NOTES`) the grid file at ``path`` carries, read from its header: :func:`load_grid` passes
+    over them, so a command writing a grid or a manifest from a grid had dropped them."""
+    meta = load_header(path, kind=GRID_KIND, max_version=GRID_FORMAT_VERSION)
+    return {key: meta[key] for key in GRID_NOTES if key in meta}
 
 
 def detect_backbone(alphas: torch.Tensor | None) -> str:

@@ -617,6 +617,18 @@ def say_smoke_test(args: argparse.Namespace, model: str) -> str | None:
     return note
 
 
+def say_grid_notes(args: argparse.Namespace, path: Path) -> dict:
+    """The notes of the grid file at ``path`` (``voxe_core.backbones.grid_notes``: a smoke-test edit's), for what the
+    command writes from it to carry; a smoke test's said once on stderr as it starts."""
+    from voxe_core.backbones import grid_notes
+
+    notes = grid_notes(path)
+    if "smoke_test" in notes:
+        print(f"voxe {args.command}: SMOKE TEST: {path} was edited with a smoke-test model: {notes['smoke_test']}",
+              file=sys.stderr)
+    return notes
+
+
 def view_params(args: argparse.Namespace) -> dict:
     """The job parameters of the dataset options of ``add_view_arguments``."""
     return {"downsample": args.downsample, "resample": args.resample, "max_images": args.max_images}

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from voxe_core.cli.common import non_negative_int, tensor_file, writable_file
+from voxe_core.cli.common import non_negative_int, say_grid_notes, tensor_file, writable_file
 
 
 def add_parsers(commands, common) -> None:
@@ -26,9 +26,10 @@ def cmd_convert_grid(args) -> int:
     if args.dense and args.margin is not None:
         raise ValueError("--margin sets the sparse layout's kept cells; --dense writes every vertex")
     grid = load_grid(args.grid)
+    notes = say_grid_notes(args, args.grid)  # (a smoke-test edit's: the rewritten grid keeps it)
     before = args.grid.stat().st_size  # before the save: --out may be GRID itself
     writable_file(args.out)
-    grid.save(args.out, dense=args.dense, margin=DEFAULT_MARGIN if args.margin is None else args.margin)
+    grid.save(args.out, dense=args.dense, margin=DEFAULT_MARGIN if args.margin is None else args.margin, notes=notes)
     _, meta = load_tensors(args.out, kind="voxel_grid", max_version=2)
     after = args.out.stat().st_size
     print(f"wrote {args.out}: {meta['layout']} {'x'.join(map(str, grid.resolution))} grid, "

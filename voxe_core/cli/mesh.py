@@ -8,7 +8,8 @@ from pathlib import Path
 
 from voxe_core.cli.common import (
     EXIT_INTERRUPTED, add_device_argument, add_grid_output_arguments, check_device, finite_float, int_list,
-    int_list_at_most, positive_int, positive_int_at_most, run_stage, said_by_option, seed, tensor_file, writable_file,
+    int_list_at_most, positive_int, positive_int_at_most, run_stage, said_by_option, say_grid_notes, seed, tensor_file,
+    writable_file,
 )
 from voxe_core.cli.reconstruct import RESOLUTION_SETTINGS, recipe_params
 from voxe_core.constants import (
@@ -76,6 +77,7 @@ def cmd_export_mesh(args) -> int:
     if args.out.suffix.lower() == ".obj":  # and the material library beside it, before the mesh is made
         writable_file(Path(os.path.realpath(args.out)).with_suffix(".mtl"))  # (save_obj's: a symlink's target's)
     grid = load_grid(args.grid).to(device)  # the density lattice is sampled there; marching cubes runs on the CPU
+    say_grid_notes(args, args.grid)  # (a mesh file carries no note: said on stderr alone)
     with said_by_option({"mesh resolution": "--resolution"}):
         mesh = extract_mesh(grid, level=args.level, resolution=args.resolution)
     save_mesh(mesh, args.out)

@@ -14,7 +14,7 @@ from pathlib import Path
 
 from voxe_core.cli.common import (
     EXIT_INTERRUPTED, add_device_argument, add_view_arguments, check_device, finite_float, load_views, positive_int,
-    run_stage, staging_folder, view_options_given, writable_file, writable_folder, write_json,
+    run_stage, say_grid_notes, staging_folder, view_options_given, writable_file, writable_folder, write_json,
 )
 from voxe_core.constants import VIDEO_SUFFIXES
 from voxe_core.files import head_that_fits, replacing
@@ -102,6 +102,7 @@ def cmd_render(args) -> int:
     writable_folder(args.out)
     grid = load_grid(args.grid)
     check_renderable(grid, args.grid)
+    notes = say_grid_notes(args, args.grid)
     scene = None
     if args.data is not None:
         scene = load_views(args)
@@ -125,7 +126,7 @@ def cmd_render(args) -> int:
         if scores is None:
             print("voxe: rendering cancelled, nothing written", file=sys.stderr)
             return EXIT_INTERRUPTED
-        _replace_manifest(args.out, earlier, outputs)
+        _replace_manifest(args.out, earlier, outputs, notes)
         for name in names:
             os.replace(staging / name, args.out / name)
     print(f"wrote {len(names)} views to {args.out}")
@@ -181,17 +182,18 @@ def _refuse_files_not_its_own(out_dir: Path, files: list[str]) -> list | None:
     return earlier
 
 
-def _replace_manifest(out_dir: Path, earlier: list | None, files: list[str]) -> None:
+def _replace_manifest(out_dir: Path, earlier: list | None, files: list[str], notes: dict) -> None:
     """Remove the files an earlier run listed in ``out_dir``'s manifest (``earlier``: as read when --out was checked,
     before the render; read again after it, the files of a manifest written meanwhile had gone, unchecked), then list
     ``files``, this run's (before it writes them, so an interrupted run's are listed too). A re-run writing fewer views
-    had left the earlier run's beside them; files no run listed (the user's own, whatever their names) stay."""
+    had left the earlier run's beside them; files no run listed (the user's own, whatever their names) stay. ``notes``:
+    the grid's (a smoke-test edit's), carried."""
     manifest = out_dir / MANIFEST_FILE
     for name in earlier or []:  # none, or not this command's: none removed
         if isinstance(name, str) and Path(name).name == name and (out_dir / name).is_file():  # (only its own names)
             (out_dir / name).unlink()
     with replacing(manifest) as partial:
-        write_json(partial, {"written_by": "voxe render", "files": files})
+        write_json(partial, {"written_by": "voxe render", "files": files, **notes})
 
 
 def _report_metrics(psnr_values, ssim_values, scene, names, out_dir: Path) -> None:
@@ -233,6 +235,7 @@ def cmd_turntable(args) -> int:
     writable_file(args.out)  # (a folder not writable had failed after the render, imageio's traceback beside it)
     grid = load_grid(args.grid)
     check_renderable(grid, args.grid)
+    say_grid_notes(args, args.grid)  # (a video carries no note: said on stderr alone)
     cameras = turntable_cameras(args.frames, args.elevation, args.size, centre=orbit_centre(args, grid))
     written = run_stage(  # each frame encoded as it is rendered (a long turntable had been held whole first)
         lambda cb: write_video(args.out, iter_views(grid, cameras, callbacks=cb, device=device), args.fps,
