@@ -1441,8 +1441,8 @@ def test_cli_checkpoint_every_0_still_writes_one_where_ctrl_c_stops_the_edit_as_
 def test_cli_edit_with_the_tiny_model_says_and_records_it_is_a_smoke_test(tmp_path, tiny_sd_path, make_sphere_grid,
                                                                            capsys):
     """``voxe edit --model`` a folder ``voxe build-tiny-model`` wrote said nothing of its random weights: the edit
-    passed for one. It says so once on stderr (even --quiet) and in edited.safetensors' header; a real-looking folder
-    without the tiny model's model_index.json mark, neither."""
+    passed for one. It says so once on stderr (even --quiet) and in edited.safetensors' and checkpoint.safetensors'
+    headers; a real-looking folder without the tiny model's model_index.json mark, neither."""
     import json
 
     from voxe_core.gridfile import GRID_FORMAT_VERSION
@@ -1464,6 +1464,9 @@ def test_cli_edit_with_the_tiny_model_says_and_records_it_is_a_smoke_test(tmp_pa
         meta = load_tensors(tmp_path / model.name / "edited.safetensors", "voxel_grid", GRID_FORMAT_VERSION)[1]
         assert meta.get("smoke_test") == (note if said else None)
         assert load_grid(tmp_path / model.name / "edited.safetensors").resolution == (8, 8, 8)
+        # the checkpoint beside it too (it had carried no mark)
+        checkpoint = tmp_path / model.name / "checkpoint.safetensors"
+        assert load_edit_checkpoint(checkpoint)[1].get("smoke_test") == (note if said else None)
 
 
 def test_cli_says_the_regulariser_a_constant_grid_switches_off(tmp_path, tiny_sd_path, make_sphere_grid, capsys):

@@ -88,7 +88,7 @@ from voxe_core.constants import (
 from voxe_core.devices import PeakMemory, resolve_device, same_device, synchronize
 from voxe_core.grid import VoxelGrid
 from voxe_core.guidance import Guidance
-from voxe_core.guidance.loading import local_path
+from voxe_core.guidance.loading import local_path, smoke_test_note
 from voxe_core.guidance.prompts import (
     AUTHORS_FRONT_AZIMUTH_DEG,
     RENDER_PREFIX,
@@ -702,6 +702,8 @@ def edit(
     run_meta = {"prompt": str(prompt), "seed": int(config.seed), "initial_sha256": fingerprint,
                 "regulariser": config.regulariser, "model": model,
                 "recipe": config.recipe(), "device": device.type}  # the device generator's
+    if (note := smoke_test_note(model)) is not None:  # (as edited.safetensors': the checkpoint had carried no mark)
+        run_meta["smoke_test"] = note
 
     start = 0
     # Consecutive steps whose SDS gradient was wholly non-finite, carried across a resume (in the checkpoint's header):

@@ -608,11 +608,10 @@ def load_guidance(args: argparse.Namespace, model: str, cuda_graphs: bool | None
 def say_smoke_test(args: argparse.Namespace, model: str) -> str | None:
     """For a ``model`` folder ``voxe build-tiny-model`` wrote (random weights), the note the run records in what it
     writes, said once on stderr as it starts; None for any other model."""
-    from voxe_core.guidance.loading import SMOKE_TEST_MODEL_NOTE, smoke_test_model
+    from voxe_core.guidance.loading import smoke_test_note
 
-    if not smoke_test_model(model):
+    if (note := smoke_test_note(model)) is None:
         return None
-    note = f"{model} is {SMOKE_TEST_MODEL_NOTE}"
     print(f"voxe {args.command}: SMOKE TEST: {note}", file=sys.stderr)
     return note
 

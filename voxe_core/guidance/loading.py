@@ -119,6 +119,11 @@ def smoke_test_model(model: str) -> bool:
     return isinstance(index, dict) and index.get("_name_or_path") == TINY_MODEL_NAME
 
 
+def smoke_test_note(model: str) -> str | None:
+    """What a run with ``model`` records in what it writes where :func:`smoke_test_model` recognises it; else None."""
+    return f"{model} is {SMOKE_TEST_MODEL_NOTE}" if smoke_test_model(model) else None
+
+
 def local_path(model: str) -> str | None:
     """The folder ``model`` names ("~" expanded: absolute, relative, existing, or no hub id: "models/sd/v1", which
     diffusers too reads as a folder first and then, as a hub id, fails on), or None for a hub id."""
