@@ -1724,11 +1724,12 @@ def test_cli_refine_records_every_setting_it_ran_with(tmp_path, tiny_model, make
 def test_cli_refine_with_the_tiny_model_says_and_records_it_is_a_smoke_test(tmp_path, tiny_model, make_sphere_grid,
                                                                              monkeypatch, capsys):
     """``voxe refine --model`` a folder ``voxe build-tiny-model`` wrote said nothing of its random weights: the mask
-    passed for one. It says so once on stderr (even --quiet) and in refine.json's ``smoke_test``; a real-looking folder
-    without the tiny model's model_index.json mark, neither."""
+    passed for one. It says so once on stderr (even --quiet) and in refine.json's and the refined grid's ``smoke_test``;
+    a real-looking folder without the tiny model's model_index.json mark, neither (unless the edited grid has one)."""
     import shutil
 
     import voxe_core.refine.pipeline
+    from voxe_core.backbones import grid_notes
 
     def favouring_the_object(grid, *args, **kwargs):  # (a fit of one step from a constant seeds nothing)
         edit_field = torch.full((*grid.resolution, 1), -5.0)
@@ -1752,6 +1753,19 @@ def test_cli_refine_with_the_tiny_model_says_and_records_it_is_a_smoke_test(tmp_
         assert [line for line in capsys.readouterr().err.splitlines() if "SMOKE" in line] == said
         summary = json.loads((tmp_path / model.name / "refine.json").read_text())
         assert summary["model"] == str(model) and summary.get("smoke_test") == (note if said else None)
+        assert grid_notes(tmp_path / model.name / "refined.safetensors") == ({"smoke_test": note} if said else {})
+    # An edited grid a smoke-test edit made (its header's note), refined with a real-looking model: the refinement is
+    # of a noise edit, said as the grid's commands say it, and carried into refine.json and the refined grid (both had
+    # dropped it)
+    make_sphere_grid(8).save(tmp_path / "edited.safetensors", dense=True, notes={"smoke_test": note})
+    assert main(["refine", str(tmp_path / "edited.safetensors"), "--initial", str(tmp_path / "grid.safetensors"),
+                 "--prompt", "a dog wearing a party hat", "--edit-words", "party hat", "--out", str(tmp_path / "noted"),
+                 "--model", str(real), "--offline", "--device", "cpu", "--iterations", "1", "--render-size", "16",
+                 "--views", "1", "--preview-views", "0", "--quiet"]) == 0
+    assert [line for line in capsys.readouterr().err.splitlines() if "SMOKE" in line] == [
+        f"voxe refine: SMOKE TEST: {tmp_path / 'edited.safetensors'} was edited with a smoke-test model: {note}"]
+    assert json.loads((tmp_path / "noted" / "refine.json").read_text())["smoke_test"] == note
+    assert grid_notes(tmp_path / "noted" / "refined.safetensors") == {"smoke_test": note}
 
 
 def test_cli_refine_smoke(tmp_path, tiny_model, make_sphere_grid):

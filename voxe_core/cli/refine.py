@@ -15,8 +15,8 @@ from pathlib import Path
 from voxe_core import constants as paper
 from voxe_core.cli.common import (
     EXIT_INTERRUPTED, EXIT_USAGE, add_grid_output_arguments, add_model_arguments, check_device, finite_float,
-    load_guidance, move_staged, non_negative_int, positive_int, positive_int_at_most, remove_earlier_outputs, run_stage, said_by_option, say_smoke_test, seed,
-    staging_folder,
+    load_guidance, move_staged, non_negative_int, positive_int, positive_int_at_most, remove_earlier_outputs, run_stage, said_by_option, say_grid_notes,
+    say_smoke_test, seed, staging_folder,
     writable_file, writable_folder, write_json,
 )
 from voxe_core.guidance.prompts import (check_edit_words_name_an_edit, check_edit_words_read,
@@ -123,7 +123,9 @@ def cmd_refine(args) -> int:
     check_compatible(initial, edited)
     out = args.out
     with staging_folder(out, "refine") as staging:  # (a run that failed part way had left a mix of two runs' files)
-        smoke_test = say_smoke_test(args, model)
+        # The model's note and the edited grid's (a smoke-test edit's: the refined grid is made of it), both kept
+        smoke_test = "; ".join(note for note in (say_smoke_test(args, model),
+                                                 say_grid_notes(args, args.edited).get("smoke_test")) if note) or None
         guidance = load_guidance(args, model)
         if guidance is None:
             return EXIT_USAGE
@@ -155,7 +157,7 @@ def _write_outputs(folder: Path, result, words: list[str], model: str, config, s
                    args, smoke_test: str | None) -> None:
     """Write the refinement's files into ``folder`` (the staging): the grids, the previews (each view saved as it
     is rendered: all five sets had been held first), then refine.json (``smoke_test``: its note, where the model was
-    the random-weight tiny one)."""
+    the random-weight tiny one or the edited grid carried one; the refined grid's header too)."""
     import torch
 
     from voxe_core.export import save_png, turntable_cameras
@@ -163,7 +165,8 @@ def _write_outputs(folder: Path, result, words: list[str], model: str, config, s
     from voxe_core.refine.storage import save_mask, save_probabilities
     from voxe_core.tensorio import config_recipe
 
-    result.refined_grid.save(folder / "refined.safetensors", dense=args.dense)
+    result.refined_grid.save(folder / "refined.safetensors", dense=args.dense,
+                             notes={"smoke_test": smoke_test} if smoke_test else None)
     save_mask(folder / "mask.safetensors", result.mask, meta={"prompt": result.info["prompt"], "edit_words": words})
     save_probabilities(folder / "probabilities.safetensors", result.edit_probability, result.object_probability,
                        result.nodes)
