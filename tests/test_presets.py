@@ -485,6 +485,7 @@ def test_the_workers_edit_with_a_tiny_model_folder_says_it_is_a_smoke_test(servi
     import json
 
     import voxe_core.edit
+    from voxe_core.backbones import grid_notes
     from voxe_core.tiny_sd import build_tiny_stable_diffusion
     from voxe_service.settings import get_settings
     from worker import tasks
@@ -507,6 +508,9 @@ def test_the_workers_edit_with_a_tiny_model_folder_says_it_is_a_smoke_test(servi
     result = client.get(f"/v1/jobs/{job['id']}").json()["result"]
     assert warnings == ([("edit", note)] if tiny else [])
     assert result.get("smoke_test") == ({"sds": note} if tiny else None)
+    edited = tmp_path / "edited.safetensors"  # the artifact carries it too, as voxe edit's
+    edited.write_bytes(client.get(f"/v1/jobs/{job['id']}/artifacts/edited_grid.safetensors").content)
+    assert grid_notes(edited) == ({"smoke_test": note} if tiny else {})
 
 
 @pytest.mark.parametrize("setting", [None, "true"])
@@ -1942,6 +1946,32 @@ def _locally_edited_job(client, scene_id: str, monkeypatch) -> str:
         recorded_edit.setattr(voxe_core.edit, "edit", dense_block)
         assert tasks.edit_task.apply(args=(job_id,)).get()["state"] == "done"
     return job_id
+
+
+def test_the_workers_refinement_with_a_tiny_model_folder_says_it_is_a_smoke_test(service, monkeypatch, tmp_path):
+    """``VOXE_ATTENTION_MODEL`` a folder ``voxe build-tiny-model`` wrote: the refine stage says so (a warning event,
+    ``result.smoke_test.attention``) and the refined grid carries the note, as voxe refine's."""
+    import voxe_core.refine.pipeline
+    from voxe_core.backbones import grid_notes
+    from voxe_core.tiny_sd import build_tiny_stable_diffusion
+    from voxe_service.settings import get_settings
+    from worker import tasks
+
+    folder = build_tiny_stable_diffusion(tmp_path / "sd")
+    monkeypatch.setattr(get_settings(), "attention_model", str(folder))
+    client, scene_id = service
+    job_id = _locally_edited_job(client, scene_id, monkeypatch)
+    monkeypatch.setattr(voxe_core.refine.pipeline, "fit_attention_grids", _attention_favouring("some"))
+    assert tasks.refine_task.apply(args=(job_id,)).get()["state"] == "done"
+    note = (f"SMOKE TEST: the attention model {str(folder)!r} is a random-weight smoke-test Stable Diffusion (voxe "
+            "build-tiny-model): what is made with it proves the plumbing only and says nothing about edit quality")
+    warnings = [(e["stage"], e["detail"]) for e in client.get(f"/v1/jobs/{job_id}/events").json()
+                if e["kind"] == "warning"]
+    assert warnings == [("refine", note)]
+    assert client.get(f"/v1/jobs/{job_id}").json()["result"]["smoke_test"] == {"attention": note}
+    refined = tmp_path / "refined.safetensors"
+    refined.write_bytes(client.get(f"/v1/jobs/{job_id}/artifacts/refined_grid.safetensors").content)
+    assert grid_notes(refined) == {"smoke_test": note}
 
 
 def _attention_favouring(kept: str):

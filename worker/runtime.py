@@ -1308,17 +1308,19 @@ def get_guidance(model: str, device: str, settings: Settings, job: Job | None = 
     return _GUIDANCE_CACHE[key]
 
 
-def say_smoke_test_model(job: Job, stage: str, role: str, model: str) -> None:
+def say_smoke_test_model(job: Job, stage: str, role: str, model: str) -> str | None:
     """Where ``model`` is a folder ``voxe build-tiny-model`` wrote (random weights; ``tiny`` is labelled by its name
     already), a ``warning`` event of ``stage`` saying so and the sentence in the job's ``result.smoke_test[role]``:
-    the job records showed the folder's path alone (the API may not see the folder; this worker loads it)."""
+    the job records showed the folder's path alone (the API may not see the folder; this worker loads it). Returns
+    the sentence, for the grid the stage writes (as ``voxe edit``'s), or None."""
     from voxe_core.guidance.loading import SMOKE_TEST_MODEL_NOTE, smoke_test_model
 
     if model == TINY_MODEL or not smoke_test_model(model):
-        return
+        return None
     note = f"SMOKE TEST: the {role} model {model!r} is {SMOKE_TEST_MODEL_NOTE}"
     record_warning(job.id, stage, note)
     _change_result(job.id, lambda result: {**result, "smoke_test": {**result.get("smoke_test", {}), role: note}})
+    return note
 
 
 def _free_least_recent_guidance() -> None:

@@ -758,7 +758,7 @@ def _edit(job: Job, settings, device: str, storage) -> None:
     from voxe_core.render import fused_marcher_runs_on
 
     guidance = runtime.get_guidance(job.sds_model, device, settings, job)  # first: a missing model fails fast
-    runtime.say_smoke_test_model(job, "edit", "sds", job.sds_model)
+    smoke_test = runtime.say_smoke_test_model(job, "edit", "sds", job.sds_model)
     rec = runtime.load_reconstruction(job.reconstruction_id)
     initial = fetch_grid(job.id, "initial_grid.safetensors", settings, storage, recorded_initial_grid(job.id, rec))
     config = _record_edit_schedule(job, initial.kind, settings)  # SPEC §5's schedule for a scene G_i
@@ -813,7 +813,7 @@ def _edit(job: Job, settings, device: str, storage) -> None:
         log.info("job %s: the VAE encoder compiled in %.1f s", job.id, compiled)
         runtime.merge_job_result(job.id, {"encoder_compile_seconds": compiled})
     path = scratch / "edited_grid.safetensors"
-    grid.save(path)
+    grid.save(path, notes={"smoke_test": smoke_test} if smoke_test else None)  # (as voxe edit's)
     runtime.publish_artifact(job.id, "edited_grid.safetensors", path, "grid", storage)
 
 
@@ -825,7 +825,9 @@ def _refine(job: Job, settings, device: str, storage) -> None:
     from voxe_core.refine.storage import save_mask, save_probabilities
 
     guidance = runtime.get_guidance(job.attention_model, device, settings, job)
-    runtime.say_smoke_test_model(job, "refine", "attention", job.attention_model)
+    smoke_test = [note for note in ((job.result or {}).get("smoke_test", {}).get("sds"),  # (the edit's)
+                                    runtime.say_smoke_test_model(job, "refine", "attention", job.attention_model))
+                  if note]
     rec = runtime.load_reconstruction(job.reconstruction_id)
     initial = fetch_grid(job.id, "initial_grid.safetensors", settings, storage, recorded_initial_grid(job.id, rec))
     edited = fetch_grid(job.id, "edited_grid.safetensors", settings, storage)
@@ -835,7 +837,8 @@ def _refine(job: Job, settings, device: str, storage) -> None:
     result = refine(initial, edited, job.prompt, job.edit_words, guidance, config, callbacks.callbacks, device=device)
 
     scratch = runtime.scratch_dir(job.id, settings)
-    result.refined_grid.save(scratch / "refined_grid.safetensors")
+    result.refined_grid.save(scratch / "refined_grid.safetensors",
+                             notes={"smoke_test": "; ".join(smoke_test)} if smoke_test else None)  # (as voxe refine's)
     save_mask(scratch / "mask.safetensors", result.mask, {"prompt": job.prompt, "edit_words": list(job.edit_words)})
     save_probabilities(scratch / "attention_probabilities.safetensors", result.edit_probability,
                        result.object_probability, result.nodes)
