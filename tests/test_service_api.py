@@ -1865,6 +1865,26 @@ def test_a_range_ending_before_it_starts_says_so_and_an_empty_files_suffix_range
         assert start.status_code == 416 and start.headers["content-range"] == "bytes */0", request
 
 
+def test_an_empty_artifact_missing_from_storage_is_a_404_as_any_other(client, root):
+    """An empty artifact's object lost from the storage had been served 200 and empty (its GET and HEAD read no
+    object), where an artifact of any other size missing so is a 404 "missing from storage": one rule, whatever the
+    size."""
+    from worker.runtime import publish_artifact
+
+    job_id, _ = _published_render(root)
+    (root / "empty.log").write_bytes(b"")
+    publish_artifact(job_id, "empty.log", root / "empty.log", "log")
+    for stored in stored_files(root):  # both lost from the storage (a bucket's lifecycle rule, an operator)
+        (root / "storage" / stored).unlink()
+    for name in ("empty.log", "render_000.png"):
+        url = f"/v1/jobs/{job_id}/artifacts/{name}"
+        for headers in ({}, {"Range": "bytes=-100"}):
+            gone = client.get(url, headers=headers)
+            assert gone.status_code == 404, (name, headers)
+            assert gone.json()["detail"] == f"artifact {name!r} is missing from storage"
+            assert client.head(url, headers=headers).status_code == 404, (name, headers)
+
+
 DATE = "Wed, 21 Oct 2015 07:28:00 GMT"
 
 

@@ -251,9 +251,10 @@ def _answer(method: str, storage: Storage, artifact: Artifact, range_: str | Non
         code = status.HTTP_206_PARTIAL_CONTENT
         headers["Content-Range"] = f"bytes {start}-{end}/{size}"
     headers["Content-Length"] = str(max(0, end - start + 1))
+    # An empty artifact's object is opened too (it reads none of it): its missing object had been served 200 empty,
+    # where any other's is a 404 "missing from storage".
     if method == "HEAD":  # answers as the GET would (it had said 200 for a file the GET could not serve)
-        if size:  # the GET of an empty file reads nothing
-            storage.size(artifact.key)
+        storage.size(artifact.key)
         return Response(status_code=code, headers=headers, media_type=artifact.content_type)
-    body = storage.open_range(artifact.key, start, end) if size else iter(())
+    body = storage.open_range(artifact.key, start, end)
     return ClosingStreamingResponse(body, status_code=code, headers=headers, media_type=artifact.content_type)
