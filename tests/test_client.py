@@ -3103,6 +3103,39 @@ def test_a_download_of_an_artifact_replaced_each_time_it_is_listed_says_so_and_k
     assert sent == [None] * REPLACED_TRIES and list((tmp_path / "out").iterdir()) == []
 
 
+def test_a_download_of_an_artifact_stored_shorter_than_listed_says_it_is_damaged_at_once(api, tmp_path, monkeypatch):
+    """Against the API app: preview.png listed at 500,000 bytes, its stored object cut to 300,000. Its body had been
+    dropped at byte 300,000 and resumed from there again and again, the error then "cannot download ... " as a
+    service out of reach; the service says, before any byte, that the stored artifact is shorter than listed, and the
+    error says so after one GET, nothing kept."""
+    import voxe_client.client as client_module
+    from worker.runtime import publish_artifact
+
+    url, storage = api
+    (tmp_path / "plane.obj").write_text(PLANE_OBJ)
+    with Client(url) as client:
+        job = client.create_job(client.upload_scene(tmp_path / "plane.obj")["id"], "a plane of gold")
+    (tmp_path / "preview.png").write_bytes(b"A" * 500_000)
+    publish_artifact(job["id"], "preview.png", tmp_path / "preview.png", "preview")
+    (stored,) = [path for path in storage.rglob("*preview.png") if path.is_file()]
+    stored.write_bytes(b"A" * 300_000)
+    sent = []
+
+    class Counting(httpx.HTTPTransport):
+        def handle_request(self, request: httpx.Request) -> httpx.Response:
+            if request.url.path.endswith("/preview.png"):
+                sent.append(request.headers.get("range"))
+            return super().handle_request(request)
+
+    monkeypatch.setattr(client_module.time, "sleep", lambda _s: None)
+    with Client(url, transport=Counting()) as client, pytest.raises(ServiceError) as failed:
+        client.download(job["id"], "preview.png", tmp_path / "out" / "preview.png")
+    assert failed.value.status == 500 and str(failed.value).endswith(
+        "HTTP 500: artifact 'preview.png' is stored with 300000 bytes, not the 500000 it is listed with: its stored "
+        "object is damaged")
+    assert sent == [None] and list((tmp_path / "out").iterdir()) == []
+
+
 def test_a_download_through_a_proxy_rewriting_etags_lands_checked_by_its_bytes(api, tmp_path):
     """A proxy answering with ETags of its own: the listing read again still names the version asked for, so the
     ETag says no version and the bytes' check decides (the download lands, one whole GET more)."""

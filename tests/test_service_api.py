@@ -1885,6 +1885,22 @@ def test_an_empty_artifact_missing_from_storage_is_a_404_as_any_other(client, ro
             assert client.head(url, headers=headers).status_code == 404, (name, headers)
 
 
+def test_an_artifact_stored_shorter_than_listed_is_a_500_naming_both_sizes_before_any_byte(client, root):
+    """An object cut short in the storage (5,000 bytes listed, 3,000 stored) had been streamed as 200 with the listed
+    Content-Length and dropped at its end, every resume from there the same: a client's error read as an outage. The
+    answer, before any byte, says the stored object is damaged, to GET and HEAD, with a Range too."""
+    job_id, url = _published_render(root)
+    (stored,) = [f for f in stored_files(root) if f.endswith("render_000.png")]
+    (root / "storage" / stored).write_bytes(b"A" * 3000)
+    for request in (client.get, client.head):
+        for headers in ({}, {"Range": "bytes=3000-"}, {"Range": "bytes=0-99"}):
+            damaged = request(url, headers=headers)
+            assert damaged.status_code == 500, (request, headers)
+            if request == client.get:
+                assert damaged.json()["detail"] == ("artifact 'render_000.png' is stored with 3000 bytes, not the "
+                                                    "5000 it is listed with: its stored object is damaged")
+
+
 DATE = "Wed, 21 Oct 2015 07:28:00 GMT"
 
 

@@ -162,6 +162,7 @@ _HEAD = {
                          "only as a weak (W/) tag, or lists only those, which never match (If-Match compares "
                          "strongly)"},
     416: {"description": "range not satisfiable"},
+    500: {"description": "the artifact's stored object is not the size it is listed with: damaged (both sizes named)"},
     422: {"description": "If-Match or If-None-Match is not * or a list of quoted entity tags, If-Match is empty, or "
                          "If-Range (with a Range) is neither an entity tag nor a date, or is sent on several lines (the "
                          "header named)"},
@@ -237,6 +238,13 @@ def _answer(method: str, storage: Storage, artifact: Artifact, range_: str | Non
     if if_range is not None and if_range != etag:  # strong comparison; a date never matches (no Last-Modified)
         range_ = None
     size = artifact.size
+    # The object's own size, before any byte is sent: one shorter than listed (cut short in the storage) had been
+    # streamed with the listed Content-Length, its connection dropped at its end, and resumed by a client again and
+    # again from there until its error read as an outage. Its absence, ObjectNotFound (an empty artifact's too).
+    if (stored := storage.size(artifact.key)) != size:
+        raise HTTPException(status.HTTP_500_INTERNAL_SERVER_ERROR,
+                            f"artifact {artifact.name!r} is stored with {stored} bytes, not the {size} it is listed "
+                            "with: its stored object is damaged")
     headers = {
         "Accept-Ranges": "bytes",
         "ETag": etag,
@@ -251,10 +259,7 @@ def _answer(method: str, storage: Storage, artifact: Artifact, range_: str | Non
         code = status.HTTP_206_PARTIAL_CONTENT
         headers["Content-Range"] = f"bytes {start}-{end}/{size}"
     headers["Content-Length"] = str(max(0, end - start + 1))
-    # An empty artifact's object is opened too (it reads none of it): its missing object had been served 200 empty,
-    # where any other's is a 404 "missing from storage".
     if method == "HEAD":  # answers as the GET would (it had said 200 for a file the GET could not serve)
-        storage.size(artifact.key)
         return Response(status_code=code, headers=headers, media_type=artifact.content_type)
     body = storage.open_range(artifact.key, start, end)
     return ClosingStreamingResponse(body, status_code=code, headers=headers, media_type=artifact.content_type)
