@@ -861,6 +861,49 @@ def test_a_download_naming_an_artifact_twice_downloads_it_once(monkeypatch, tmp_
     assert "job j1 has no artifact 'nope'; it has a.png, b.png; nothing downloaded" in capsys.readouterr().err
 
 
+def test_a_download_of_n_artifacts_reads_the_listing_once(monkeypatch, tmp_path):
+    """``voxe download j1`` of three artifacts had read the job's listing four times (Client.download read it again for
+    each); it reads it once and hands each download its entry. A download whose answer names another version (one
+    replaced since the listing) still reads the listing again for it."""
+    import hashlib
+
+    import httpx
+
+    import voxe_core.cli.service as service
+    from voxe_client import Client
+
+    asked, served = [], {name: b"frame" for name in ("a.png", "b.png", "c.png")}
+
+    def entry(name: str) -> dict:
+        return {"name": name, "size": len(served[name]), "sha256": hashlib.sha256(served[name]).hexdigest()}
+
+    def answer(request: httpx.Request) -> httpx.Response:
+        asked.append(request.url.path)
+        if request.url.path == "/v1/jobs/j1":
+            return httpx.Response(200, json={"id": "j1", "state": "succeeded"})
+        if request.url.path == "/v1/jobs/j1/artifacts":
+            return httpx.Response(200, json=[entry(name) for name in served])
+        data = served[request.url.path.rpartition("/")[2]]
+        return httpx.Response(200, content=data, headers={"etag": f'"{hashlib.sha256(data).hexdigest()}"'})
+
+    monkeypatch.setattr(service, "_client", lambda args: Client(transport=httpx.MockTransport(answer)))
+    assert main(["download", "j1", "--out", str(tmp_path / "all"), "--quiet"]) == 0
+    assert asked == ["/v1/jobs/j1", "/v1/jobs/j1/artifacts", "/v1/jobs/j1/artifacts/a.png",
+                     "/v1/jobs/j1/artifacts/b.png", "/v1/jobs/j1/artifacts/c.png"]
+    assert all((tmp_path / "all" / name).read_bytes() == b"frame" for name in served)
+    asked.clear()
+    with Client(transport=httpx.MockTransport(answer)) as client:
+        (b_listed,) = [a for a in client.artifacts("j1") if a["name"] == "b.png"]
+        served["b.png"] = b"frame, republished"  # replaced after its listing was read
+        client.download("j1", "b.png", tmp_path / "one" / "b.png", listed=b_listed)
+        assert client.download("j1", "c.png", tmp_path / "one" / "c.png").read_bytes() == b"frame"  # as before
+        with pytest.raises(ValueError, match="download of 'c.png': listed is the entry of 'b.png'"):
+            client.download("j1", "c.png", tmp_path / "one" / "c.png", listed=b_listed)
+    assert (tmp_path / "one" / "b.png").read_bytes() == b"frame, republished"
+    assert asked == ["/v1/jobs/j1/artifacts", "/v1/jobs/j1/artifacts/b.png", "/v1/jobs/j1/artifacts",
+                     "/v1/jobs/j1/artifacts/b.png", "/v1/jobs/j1/artifacts", "/v1/jobs/j1/artifacts/c.png"]
+
+
 @pytest.mark.parametrize("state, artifacts, said", [
     ("running", ["a.png"], "job j1 is running: these are the artifacts it has so far; `voxe wait j1`, then download "
                            "again for all of them"),

@@ -665,8 +665,10 @@ class Client:
                                "each with a name")
         return listed
 
-    def download(self, job_id: str, name: str, dest: str | os.PathLike) -> Path:
-        """Stream the artifact to ``dest`` and check its size and SHA-256 against the job's listing.
+    def download(self, job_id: str, name: str, dest: str | os.PathLike, listed: dict | None = None) -> Path:
+        """Stream the artifact to ``dest`` and check its size and SHA-256 against the job's listing: ``listed``, its
+        entry in :meth:`artifacts` where the caller has read it (``voxe download`` of N artifacts had read the listing
+        N + 1 times), else read here.
 
         A connection broken off or stalled mid-way (:data:`BROKEN_DOWNLOADS`; a body its close ends, short of the size:
         :func:`_ends_at_close`) is resumed where it stopped, with ``Range`` and ``If-Range`` (the listed SHA-256, the
@@ -696,25 +698,29 @@ class Client:
         if Path(dest).is_dir():  # (the whole artifact had been fetched, then its rename failed naming the part file)
             raise IsADirectoryError(f"cannot download {name} of job {job_id} to {dest}: it is a folder; nothing "
                                     "downloaded")
+        if listed is not None and listed.get("name") != name:
+            raise ValueError(f"download of {name!r}: listed is the entry of {listed.get('name')!r}")
         unmatched = None
         for listing in range(1, REPLACED_TRIES + 1):
             try:
-                return self._download_listed(job_id, name, Path(dest), unmatched)
+                return self._download_listed(job_id, name, Path(dest), unmatched, listed)
             except _ArtifactReplaced as replaced:
                 if listing == REPLACED_TRIES:
                     raise
-                unmatched = replaced.listed
+                unmatched, listed = replaced.listed, None  # (the listing is read again)
 
-    def _download_listed(self, job_id: str, name: str, dest: Path, unmatched: str | None = None) -> Path:
-        """:meth:`download` of the version of the artifact the job's listing names now; _ArtifactReplaced when the
-        service answers with another's ETag. Not when the listing still names ``unmatched``, the SHA-256 an ETag did
-        not match before: the listing unchanged, a proxy's ETag (one rewriting them) says no version; the bytes'
-        check does."""
-        listed = {a["name"]: a for a in self.artifacts(job_id)}
-        if name not in listed:
-            raise ServiceError(f"job {job_id} has no artifact {name!r}; it has {', '.join(sorted(listed)) or 'none'}",
-                               404)
-        expected = listed[name]
+    def _download_listed(self, job_id: str, name: str, dest: Path, unmatched: str | None = None,
+                         expected: dict | None = None) -> Path:
+        """:meth:`download` of the version of the artifact ``expected`` (its listing entry) or, without it, the job's
+        listing names now; _ArtifactReplaced when the service answers with another's ETag. Not when the listing still
+        names ``unmatched``, the SHA-256 an ETag did not match before: the listing unchanged, a proxy's ETag (one
+        rewriting them) says no version; the bytes' check does."""
+        if expected is None:
+            listed = {a["name"]: a for a in self.artifacts(job_id)}
+            if name not in listed:
+                raise ServiceError(f"job {job_id} has no artifact {name!r}; it has "
+                                   f"{', '.join(sorted(listed)) or 'none'}", 404)
+            expected = listed[name]
         if not SHA256_HEX.fullmatch(str(expected.get("sha256"))):  # (it names the part file)
             raise ServiceError(f"artifact {name!r} of job {job_id} is listed with sha256 {expected.get('sha256')!r}, "
                                "not a SHA-256; nothing written")

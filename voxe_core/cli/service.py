@@ -393,13 +393,13 @@ def cmd_download(args) -> int:
     with _client(args) as client:
         try:
             state = client.get_job(args.job_id)["state"]  # before the listing: an artifact it adds after is in it
-            listed = [a["name"] for a in client.artifacts(args.job_id)]
+            listed = {a["name"]: a for a in client.artifacts(args.job_id)}
             names = list(dict.fromkeys(args.name or listed))  # each once: --name a --name a had downloaded a twice
             if missing := [name for name in names if name not in listed]:  # before any is downloaded
                 raise ServiceError(f"job {args.job_id} has no artifact {', '.join(map(repr, missing))}; it has "
                                    f"{', '.join(sorted(listed)) or 'none'}; nothing downloaded")
             for name in names:
-                path = client.download(args.job_id, name, args.out / name)
+                path = client.download(args.job_id, name, args.out / name, listed=listed[name])
                 if not args.quiet:
                     print(f"{path} (sha256 checked)", file=sys.stderr)
         except ServiceError as exc:
