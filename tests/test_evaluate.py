@@ -933,6 +933,18 @@ def service(tmp_path, monkeypatch):
     reset_service_caches()
 
 
+def _sweep_with_one_edit_done(service, grid) -> tuple[dict, dict]:
+    """A sweep of the ``service`` fixture's scene whose fifth entry's edit is recorded as done, ``grid`` unchanged
+    (:func:`_as_if_edited`); the sweep as created and that entry."""
+    client, scene_id, root = service
+    params = {"iterations": 2, "reconstruction": {"resolution": 8, "iterations": 1}}
+    sweep = client.post("/v1/sweeps", json={"scenes": [{"scene_id": scene_id, "object": "mic"}], "params": params,
+                                            "evaluation": RING}).json()
+    entry = sweep["entries"][4]
+    _as_if_edited(entry["edit_job_id"], grid, grid, None, root)
+    return sweep, entry
+
+
 def _as_if_edited(job_id: str, initial, edited, mask=None, scratch=None) -> None:
     """Record ``job_id`` as succeeded with the artifacts its stages publish (the stages have their own tests)."""
     from sqlalchemy import update
@@ -1170,12 +1182,8 @@ def test_a_sweep_summarises_while_an_evaluation_runs_and_after_one_failed(servic
     from voxe_core.progress import Progress
     from worker import tasks
 
-    client, scene_id, root = service
-    params = {"iterations": 2, "reconstruction": {"resolution": 8, "iterations": 1}}
-    sweep = client.post("/v1/sweeps", json={"scenes": [{"scene_id": scene_id, "object": "mic"}], "params": params,
-                                            "evaluation": RING}).json()
-    entry = sweep["entries"][4]
-    _as_if_edited(entry["edit_job_id"], sphere_grid, sphere_grid, None, root)
+    client, _, _ = service
+    sweep, entry = _sweep_with_one_edit_done(service, sphere_grid)
     seen = {}
 
     def evaluate(initial, edits, obj, clip, fid, images, config, callbacks, device=None, on_ring=None):
@@ -1198,12 +1206,8 @@ def test_the_smoke_test_models_scores_are_labelled_as_such_in_every_table_and_su
     from voxe_service.settings import smoke_test_roles
     from worker import tasks
 
-    client, scene_id, root = service
-    params = {"iterations": 2, "reconstruction": {"resolution": 8, "iterations": 1}}
-    sweep = client.post("/v1/sweeps", json={"scenes": [{"scene_id": scene_id, "object": "mic"}], "params": params,
-                                            "evaluation": RING}).json()
-    entry = sweep["entries"][4]
-    _as_if_edited(entry["edit_job_id"], sphere_grid, sphere_grid, None, root)
+    client, _, _ = service
+    sweep, entry = _sweep_with_one_edit_done(service, sphere_grid)
     assert tasks.evaluate_task.apply(args=(entry["evaluation_job_id"],)).get()["state"] == "done"
     note = ("**SMOKE TEST**: CLIP and FID are random-weight smoke-test models: these numbers prove the plumbing only "
             "and say nothing about the edits' quality.\n\n| job_id | prompt |")

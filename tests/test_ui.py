@@ -701,19 +701,8 @@ def test_a_second_upload_s_status_is_not_written_over_by_the_first_s_outcome(liv
     status = lambda: text(driver, "#upload-status")  # noqa: E731
     set_key(driver, svc, token)
     faults(driver, {"/v1/scenes/": scene_answered(PROCESSING_SCENE)})
-    made = []
     try:
-        for name in ("first", "second"):
-            (tmp_path / name).mkdir()
-            driver.find_element("id", "upload-files").clear()
-            driver.find_element("id", "upload-files").send_keys(str(tetrahedron(tmp_path / name)))
-            driver.find_element("id", "upload-name").clear()
-            driver.find_element("id", "upload-name").send_keys(name)
-            driver.find_element("css selector", "#upload-form button").click()
-            wait_until(lambda: (found := re.search(r"stored as (\S+);", status())) and found[1] not in made, 30,
-                       what=f"the {name} upload stored")
-            made.append(re.search(r"stored as (\S+);", status())[1])
-        first, second = made
+        first, second = made = _upload_two(driver, tmp_path, status)
         ready = {"id": first, "name": "first", "state": "ready", "warnings": ["a warning of the first"]}
         polls = len(requested(driver, f"/v1/scenes/{first}"))
         faults(driver, {f"/v1/scenes/{first}": scene_answered(ready),  # (keys matched in sorted order: no prefix)
