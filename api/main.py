@@ -273,10 +273,44 @@ async def validation_error(request, exc: RequestValidationError) -> JSONResponse
     return JSONResponse(status_code=422, content={"detail": _json_safe(errors)})
 
 
+class RefuseAtStartup:
+    """The app as uvicorn serves it: a :class:`SettingsError` its lifespan's startup raises (a VOXE_WORK_DIR that is
+    a file) is said in one line (:func:`refuse_settings`) before uvicorn's "Application startup failed. Exiting."
+    (its exit status 3), not in the traceback of some thirty lines uvicorn had printed, the variable on its last.
+    Starlette sends that traceback as the startup failure's message, then raises: the message is held until then."""
+
+    def __init__(self, app: FastAPI):
+        self.app = app
+
+    async def __call__(self, scope, receive, send):
+        if scope["type"] != "lifespan":
+            return await self.app(scope, receive, send)
+        failed = None
+
+        async def holding_send(message):
+            nonlocal failed
+            if message["type"] != "lifespan.startup.failed":
+                return await send(message)
+            failed = message
+
+        try:
+            await self.app(scope, receive, holding_send)
+        except SettingsError as exc:
+            if failed is None:
+                raise
+            refuse_settings("Vox-E API", exc)
+            await send({**failed, "message": ""})
+            raise
+        except BaseException:
+            if failed is not None:
+                await send(failed)
+            raise
+
+
 def __getattr__(name: str):  # ``uvicorn api.main:app`` builds the app on first access
     if name == "app":
         try:
-            globals()["app"] = create_app()
+            globals()["app"] = RefuseAtStartup(create_app())
         except SettingsError as exc:  # one line naming the setting, as uvicorn's traceback had ended with
             sys.exit(refuse_settings("Vox-E API", exc))
         return globals()["app"]

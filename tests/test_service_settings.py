@@ -353,6 +353,27 @@ def test_the_api_and_the_worker_refuse_a_bad_setting_in_one_line(tmp_path, comma
                               "integer, unable to parse string as an integer\n"), refused.stderr
 
 
+@pytest.mark.parametrize("kind", ["work_dir"])
+def test_the_api_refuses_a_setting_its_startup_finds_bad_in_one_line(tmp_path, kind):
+    """A setting refused by the API's startup (its lifespan), not by the settings' parse: uvicorn had printed its
+    "Application startup failed" traceback, the variable named on its last line; one line names it now, and uvicorn
+    still exits with its startup failure's status (3)."""
+    from service_helpers import service_env
+
+    (tmp_path / "a-file").write_text("")
+    setting, expected = {
+        "work_dir": ("VOXE_WORK_DIR", f"VOXE_WORK_DIR='{tmp_path / 'a-file'}': cannot make the upload staging "
+                                      f"folder '{tmp_path / 'a-file' / 'uploads'}': Not a directory"),
+    }[kind]
+    env = {**os.environ, **service_env(tmp_path), setting: str(tmp_path / "a-file"), "PYTHONPATH": str(ROOT)}
+    refused = subprocess.run([sys.executable, "-m", "uvicorn", "api.main:app", "--port", "0"], cwd=ROOT, env=env,
+                             capture_output=True, text=True, timeout=120)
+    assert refused.returncode == 3, refused.stderr
+    assert f"\nVox-E API: bad service settings: {expected}\nERROR:    Application startup failed. Exiting.\n" in (
+        refused.stderr), refused.stderr
+    assert "Traceback" not in refused.stderr and len(refused.stderr.splitlines()) == 5, refused.stderr
+
+
 def test_s3_endpoints_naming_a_host_are_accepted():
     for endpoint in ("http://minio:9000", "https://s3.eu-west-1.amazonaws.com", "http://[::1]:9000", "http://10.0.0.5",
                      "http://minio.", "https://s3.example.com/"):
