@@ -353,7 +353,7 @@ def test_the_api_and_the_worker_refuse_a_bad_setting_in_one_line(tmp_path, comma
                               "integer, unable to parse string as an integer\n"), refused.stderr
 
 
-@pytest.mark.parametrize("kind", ["work_dir"])
+@pytest.mark.parametrize("kind", ["work_dir", "storage_dir"])
 def test_the_api_refuses_a_setting_its_startup_finds_bad_in_one_line(tmp_path, kind):
     """A setting refused by the API's startup (its lifespan), not by the settings' parse: uvicorn had printed its
     "Application startup failed" traceback, the variable named on its last line; one line names it now, and uvicorn
@@ -364,6 +364,8 @@ def test_the_api_refuses_a_setting_its_startup_finds_bad_in_one_line(tmp_path, k
     setting, expected = {
         "work_dir": ("VOXE_WORK_DIR", f"VOXE_WORK_DIR='{tmp_path / 'a-file'}': cannot make the upload staging "
                                       f"folder '{tmp_path / 'a-file' / 'uploads'}': Not a directory"),
+        "storage_dir": ("VOXE_STORAGE_DIR", f"VOXE_STORAGE_DIR='{tmp_path / 'a-file'}': cannot make the storage "
+                                            "folder: File exists"),
     }[kind]
     env = {**os.environ, **service_env(tmp_path), setting: str(tmp_path / "a-file"), "PYTHONPATH": str(ROOT)}
     refused = subprocess.run([sys.executable, "-m", "uvicorn", "api.main:app", "--port", "0"], cwd=ROOT, env=env,

@@ -729,8 +729,9 @@ _instances: dict[tuple, Storage] = {}
 
 
 def get_storage(settings=None) -> Storage:
-    """The storage the settings describe (one instance per configuration and process)."""
-    from voxe_service.settings import get_settings
+    """The storage the settings describe (one instance per configuration and process); SettingsError naming
+    VOXE_STORAGE_DIR where its folder cannot be made (the API's startup had ended in an OSError's traceback)."""
+    from voxe_service.settings import SettingsError, get_settings
 
     settings = settings or get_settings()
     if settings.storage_backend == "s3":
@@ -742,5 +743,9 @@ def get_storage(settings=None) -> Storage:
     else:
         key = ("local", str(Path(settings.storage_dir).resolve()))
         if key not in _instances:
-            _instances[key] = LocalStorage(settings.storage_dir)
+            try:
+                _instances[key] = LocalStorage(settings.storage_dir)
+            except OSError as exc:
+                raise SettingsError(f"bad service settings: VOXE_STORAGE_DIR={str(settings.storage_dir)!r}: cannot "
+                                    f"make the storage folder: {exc.strerror}") from None
     return _instances[key]
