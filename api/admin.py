@@ -28,7 +28,7 @@ from sqlalchemy.orm import Session
 
 from api.auth import TOKEN_PREFIX, create_key, has_expired, key_of_token, token_key_id
 from api.services.jobs import request_cancel, rotate_webhook_secret
-from voxe_service.db import DATABASE_UNAVAILABLE, database_outage, run_migrations, session_scope
+from voxe_service.db import DATABASE_UNAVAILABLE, outage_line, run_migrations, session_scope
 from voxe_service.models import LOCAL_KEY_ID, PROCESSING, TERMINAL_STATES, ApiKey, Job, Scene, utcnow
 from voxe_service.scenes import fail_scene
 from voxe_service.settings import SettingsError, get_settings, refuse_settings
@@ -177,11 +177,9 @@ def main(argv: list[str] | None = None) -> int:
     except SettingsError as exc:
         return refuse_settings("python -m api.admin", exc)
     except DATABASE_UNAVAILABLE as exc:
-        if (why := database_outage(exc)) is None:
+        if (line := outage_line(exc)) is None:
             raise
-        cause = str(getattr(exc, "orig", None) or exc).strip().partition("\n")[0]
-        print(f"python -m api.admin: {why} (VOXE_DATABASE_URL): {cause}", file=sys.stderr)
-        return 1
+        return refuse_settings("python -m api.admin", line)
 
 
 def _command(argv: list[str] | None) -> int:

@@ -19,7 +19,7 @@ from fastapi.responses import JSONResponse, PlainTextResponse
 from starlette.requests import HTTPConnection
 
 from api import http_semantics
-from voxe_service.db import run_migrations, sync_clock
+from voxe_service.db import outage_line, run_migrations, sync_clock
 from voxe_service.settings import Settings, SettingsError, get_settings, model_label, refuse_settings
 from voxe_service.texts import shorter
 
@@ -275,7 +275,7 @@ async def validation_error(request, exc: RequestValidationError) -> JSONResponse
 
 class RefuseAtStartup:
     """The app as uvicorn serves it: a :class:`SettingsError` its lifespan's startup raises (a VOXE_WORK_DIR that is
-    a file) is said in one line (:func:`refuse_settings`) before uvicorn's "Application startup failed. Exiting."
+    a file), or a database it cannot reach (``outage_line``), is said in one line (:func:`refuse_settings`) before uvicorn's "Application startup failed. Exiting."
     (its exit status 3), not in the traceback of some thirty lines uvicorn had printed, the variable on its last.
     Starlette sends that traceback as the startup failure's message, then raises: the message is held until then."""
 
@@ -295,15 +295,12 @@ class RefuseAtStartup:
 
         try:
             await self.app(scope, receive, holding_send)
-        except SettingsError as exc:
-            if failed is None:
-                raise
-            refuse_settings("Vox-E API", exc)
-            await send({**failed, "message": ""})
-            raise
-        except BaseException:
+        except BaseException as exc:
             if failed is not None:
-                await send(failed)
+                line = exc if isinstance(exc, SettingsError) else outage_line(exc)
+                if line is not None:
+                    refuse_settings("Vox-E API", line)
+                await send(failed if line is None else {**failed, "message": ""})
             raise
 
 

@@ -353,7 +353,7 @@ def test_the_api_and_the_worker_refuse_a_bad_setting_in_one_line(tmp_path, comma
                               "integer, unable to parse string as an integer\n"), refused.stderr
 
 
-@pytest.mark.parametrize("kind", ["work_dir", "storage_dir"])
+@pytest.mark.parametrize("kind", ["work_dir", "storage_dir", "database_url"])
 def test_the_api_refuses_a_setting_its_startup_finds_bad_in_one_line(tmp_path, kind):
     """A setting refused by the API's startup (its lifespan), not by the settings' parse: uvicorn had printed its
     "Application startup failed" traceback, the variable named on its last line; one line names it now, and uvicorn
@@ -361,17 +361,22 @@ def test_the_api_refuses_a_setting_its_startup_finds_bad_in_one_line(tmp_path, k
     from service_helpers import service_env
 
     (tmp_path / "a-file").write_text("")
-    setting, expected = {
-        "work_dir": ("VOXE_WORK_DIR", f"VOXE_WORK_DIR='{tmp_path / 'a-file'}': cannot make the upload staging "
-                                      f"folder '{tmp_path / 'a-file' / 'uploads'}': Not a directory"),
-        "storage_dir": ("VOXE_STORAGE_DIR", f"VOXE_STORAGE_DIR='{tmp_path / 'a-file'}': cannot make the storage "
-                                            "folder: File exists"),
+    setting, value, expected = {
+        "work_dir": ("VOXE_WORK_DIR", str(tmp_path / "a-file"),
+                     f"bad service settings: VOXE_WORK_DIR='{tmp_path / 'a-file'}': cannot make the upload staging "
+                     f"folder '{tmp_path / 'a-file' / 'uploads'}': Not a directory"),
+        "storage_dir": ("VOXE_STORAGE_DIR", str(tmp_path / "a-file"),
+                        f"bad service settings: VOXE_STORAGE_DIR='{tmp_path / 'a-file'}': cannot make the storage "
+                        "folder: File exists"),
+        "database_url": ("VOXE_DATABASE_URL", "postgresql+psycopg://voxe:s3cret@127.0.0.1:1/voxe",
+                         "the database cannot be reached or is locked (VOXE_DATABASE_URL): connection failed: "
+                         'connection to server at "127.0.0.1", port 1 failed: Connection refused'),
     }[kind]
-    env = {**os.environ, **service_env(tmp_path), setting: str(tmp_path / "a-file"), "PYTHONPATH": str(ROOT)}
+    env = {**os.environ, **service_env(tmp_path), setting: value, "PYTHONPATH": str(ROOT)}
     refused = subprocess.run([sys.executable, "-m", "uvicorn", "api.main:app", "--port", "0"], cwd=ROOT, env=env,
                              capture_output=True, text=True, timeout=120)
     assert refused.returncode == 3, refused.stderr
-    assert f"\nVox-E API: bad service settings: {expected}\nERROR:    Application startup failed. Exiting.\n" in (
+    assert f"\nVox-E API: {expected}\nERROR:    Application startup failed. Exiting.\n" in (
         refused.stderr), refused.stderr
     assert "Traceback" not in refused.stderr and len(refused.stderr.splitlines()) == 5, refused.stderr
 

@@ -50,6 +50,15 @@ def database_outage(exc: Exception) -> str | None:
     return None
 
 
+def outage_line(exc: BaseException) -> str | None:
+    """``exc`` said in one line naming VOXE_DATABASE_URL where it is an outage (:func:`database_outage`), else None:
+    ``python -m api.admin`` and the API's start say it so, where SQLAlchemy's traceback, a page of it, had been."""
+    if not isinstance(exc, DATABASE_UNAVAILABLE) or (why := database_outage(exc)) is None:
+        return None
+    cause = str(getattr(exc, "orig", None) or exc).strip().partition("\n")[0]
+    return f"{why} (VOXE_DATABASE_URL): {cause}"
+
+
 def ensure_sqlite_dir(url: str) -> None:
     """Create the folder of a file-backed SQLite URL (``sqlite:///./var/voxe.db``)."""
     path = sqlite_file(url)

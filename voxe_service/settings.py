@@ -472,10 +472,10 @@ class SettingsError(ValueError):
     """Environment variables the service cannot start with, each named as it is set."""
 
 
-def refuse_settings(program: str, error: SettingsError) -> int:
+def refuse_settings(program: str, error: SettingsError | str) -> int:
     """Say ``error`` in one line on stderr, prefixed with ``program``; the exit status to end with (1). The API, the
     worker and ``python -m api.admin`` share it: the API and the worker had ended in a traceback whose last line named
-    the variable."""
+    the variable. A string: a database that cannot be reached at start (``voxe_service.db.outage_line``)."""
     print(f"{program}: {error}", file=sys.stderr)
     return 1
 
