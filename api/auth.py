@@ -30,7 +30,7 @@ from api.http_semantics import DATABASE_UNAVAILABLE, as_sent, route_path, unavai
 from voxe_service.db import get_sessionmaker
 from voxe_service.quotas import lock_key, stored_bytes, upload_limit
 from voxe_service.models import LOCAL_KEY_ID, PROCESSING, QUEUED, RUNNING, ApiKey, IdempotencyRecord, Job, utcnow
-from voxe_service.settings import Settings, get_settings, is_loopback
+from voxe_service.settings import Settings, SettingsError, get_settings, is_loopback
 from voxe_service.texts import listed
 
 TOKEN_PREFIX = "voxe_"
@@ -259,11 +259,12 @@ class RequireKey:
 
 
 def check_startup(settings: Settings) -> str:
-    """The startup line about authentication; RuntimeError when it would be off on a reachable address."""
+    """The startup line about authentication; SettingsError when it would be off on a reachable address (said in
+    one line as the API starts, where a RuntimeError had been uvicorn's traceback)."""
     if settings.auth_enabled:
         return f"authentication ON (VOXE_AUTH={settings.auth}, host {settings.host}): every request needs an API key"
     if not is_loopback(settings.host):
-        raise RuntimeError(f"refusing to start: VOXE_AUTH=off on the non-loopback host {settings.host!r}; "
+        raise SettingsError(f"refusing to start: VOXE_AUTH=off on the non-loopback host {settings.host!r}; "
                            "authentication may be off only on 127.0.0.1 / ::1 / localhost")
     return (f"authentication OFF (VOXE_AUTH={settings.auth}, loopback host {settings.host}): every request acts "
             "as the local key; set VOXE_AUTH=on to require API keys")

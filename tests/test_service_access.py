@@ -747,7 +747,7 @@ def test_the_api_under_uvicorn_says_authentication_is_on_at_its_log_level(tmp_pa
 # ------------------------------------------------------------------------------------------ the auth switch
 def test_auth_is_off_only_on_loopback(root, monkeypatch, caplog):  # noqa: F811
     from api.main import create_app
-    from voxe_service.settings import Settings, is_loopback
+    from voxe_service.settings import Settings, SettingsError, is_loopback
 
     for host in ("127.0.0.1", "127.8.9.1", "::1", "[::1]", "localhost", "localhost.", "LocalHost"):
         assert is_loopback(host) and not Settings(host=host).auth_enabled, host
@@ -764,7 +764,7 @@ def test_auth_is_off_only_on_loopback(root, monkeypatch, caplog):  # noqa: F811
     monkeypatch.setenv("VOXE_HOST", "0.0.0.0")
     monkeypatch.setenv("VOXE_AUTH", "off")
     _reset()
-    with pytest.raises(RuntimeError, match="refusing to start: VOXE_AUTH=off on the non-loopback host '0.0.0.0'"):
+    with pytest.raises(SettingsError, match="refusing to start: VOXE_AUTH=off on the non-loopback host '0.0.0.0'"):
         with TestClient(create_app()):
             pass
 

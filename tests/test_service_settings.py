@@ -353,7 +353,7 @@ def test_the_api_and_the_worker_refuse_a_bad_setting_in_one_line(tmp_path, comma
                               "integer, unable to parse string as an integer\n"), refused.stderr
 
 
-@pytest.mark.parametrize("kind", ["work_dir", "storage_dir", "database_url"])
+@pytest.mark.parametrize("kind", ["work_dir", "storage_dir", "database_url", "auth"])
 def test_the_api_refuses_a_setting_its_startup_finds_bad_in_one_line(tmp_path, kind):
     """A setting refused by the API's startup (its lifespan), not by the settings' parse: uvicorn had printed its
     "Application startup failed" traceback, the variable named on its last line; one line names it now, and uvicorn
@@ -371,14 +371,17 @@ def test_the_api_refuses_a_setting_its_startup_finds_bad_in_one_line(tmp_path, k
         "database_url": ("VOXE_DATABASE_URL", "postgresql+psycopg://voxe:s3cret@127.0.0.1:1/voxe",
                          "the database cannot be reached or is locked (VOXE_DATABASE_URL): connection failed: "
                          'connection to server at "127.0.0.1", port 1 failed: Connection refused'),
+        "auth": ("VOXE_AUTH", "off", "refusing to start: VOXE_AUTH=off on the non-loopback host '0.0.0.0'; "
+                 "authentication may be off only on 127.0.0.1 / ::1 / localhost"),
     }[kind]
-    env = {**os.environ, **service_env(tmp_path), setting: value, "PYTHONPATH": str(ROOT)}
+    env = {**os.environ, **service_env(tmp_path), setting: value, "VOXE_HOST": "0.0.0.0", "PYTHONPATH": str(ROOT)}
     refused = subprocess.run([sys.executable, "-m", "uvicorn", "api.main:app", "--port", "0"], cwd=ROOT, env=env,
                              capture_output=True, text=True, timeout=120)
     assert refused.returncode == 3, refused.stderr
     assert f"\nVox-E API: {expected}\nERROR:    Application startup failed. Exiting.\n" in (
         refused.stderr), refused.stderr
-    assert "Traceback" not in refused.stderr and len(refused.stderr.splitlines()) == 5, refused.stderr
+    assert "Traceback" not in refused.stderr and len(refused.stderr.splitlines()) == 5 - (kind == "auth"), (
+        refused.stderr)  # (auth: no "authentication OFF" line, it is refused)
 
 
 def test_s3_endpoints_naming_a_host_are_accepted():
