@@ -1077,7 +1077,8 @@ def test_a_hidden_page_polls_nothing_until_it_shows(live, browser):
 def test_a_refused_key_is_not_asked_with_again_until_another_is_used(live, browser, tmp_path):
     """With no key or one the API refuses (401, 403), the job list and the scenes are asked once, and the key field
     says a key is needed: both had been asked again every 3 s for as long as the page stayed open, refused each time.
-    An upload's scene gone (404) is not watched again either: it had been asked every 30 s for good."""
+    An upload's scene gone (404) is not watched again either: it had been asked every 30 s for good; the upload's status
+    says it was deleted (a "checking scene …: 404" error had stayed beside the upload field for good)."""
     svc, token, _archive = live
     driver = browser
     error = lambda name: text(driver, f'[data-error-for="{name}"]')  # noqa: E731
@@ -1102,9 +1103,11 @@ def test_a_refused_key_is_not_asked_with_again_until_another_is_used(live, brows
     driver.execute_script("window.requests = []")
     driver.find_element("id", "upload-files").send_keys(str(tetrahedron(tmp_path)))
     driver.find_element("css selector", "#upload-form button").click()
-    wait_until(lambda: "not asked again" in error("upload"), 10, what="the scene gone said")
-    scene_id = re.search(r"stored as (\S+);", text(driver, "#upload-status"))[1]
-    assert error("upload") == f"checking scene {scene_id}: 404: scene not found; not asked again"
+    wait_until(lambda: "no longer watched" in text(driver, "#upload-status"), 10, what="the scene gone said")
+    scene_id = re.search(r"^scene (\S+) was deleted", text(driver, "#upload-status"))[1]
+    assert text(driver, "#upload-status") == (f"scene {scene_id} was deleted before its ingest ended (404: scene not "
+                                              "found); no longer watched")
+    assert error("upload") == ""  # "checking scene …: 404: scene not found; not asked again" had stayed there
     time.sleep(3)  # the watch's first retry had come 2 s after its failure
     assert len(requested(driver, "/v1/scenes/")) == 1
     faults(driver, {})

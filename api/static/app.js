@@ -364,10 +364,14 @@ async function waitForScene(sceneId, status, signal) {
     } catch (error) {
       if (signal.aborted) return;
       // The scene gone (deleted meanwhile): asked again it is answered the same (it had been asked every 30 s for
-      // as long as the page stayed open, and again on every later home page).
+      // as long as the page stayed open, and again on every later home page). Said as the upload's outcome, where
+      // "checking scene …: 404" had stayed beside the upload field for good, as if the page could not check it.
       if (error.status === 404) {
         ingesting.delete(sceneId);
-        showError("upload", `checking scene ${sceneId}: ${errorText(error)}; not asked again`);
+        if (errorSlot("upload").textContent.startsWith(`checking scene ${sceneId}: `)) showError("upload", "");
+        const gone = `scene ${sceneId} was deleted before its ingest ended (${errorText(error)}); no longer watched`;
+        if (reported === sceneId) status.textContent = gone;
+        else listEarlier(gone);
         return;
       }
       // The key refused: watched again (ingesting kept) by the next home page, the one a key's use opens.
@@ -387,9 +391,14 @@ async function waitForScene(sceneId, status, signal) {
 /** An earlier upload's failed ingest, listed under the upload form: the form reports the last upload sent only, and
  * an earlier one's failure, once a later upload was sent, had been said nowhere (its scene just never offered). */
 function listEarlierFailure(scene) {
+  listEarlier(`scene ${scene.name} (${scene.id}) failed: ${scene.error || "the scene could not be decoded"}`);
+}
+
+/** An earlier upload's outcome, listed under the upload form (its failure, its scene deleted). */
+function listEarlier(said) {
   const list = $("#upload-earlier");
   const item = document.createElement("li");
-  item.textContent = `scene ${scene.name} (${scene.id}) failed: ${scene.error || "the scene could not be decoded"}`;
+  item.textContent = said;
   list.append(item);
   list.hidden = false;
 }
