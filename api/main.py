@@ -275,8 +275,9 @@ async def validation_error(request, exc: RequestValidationError) -> JSONResponse
 
 class RefuseAtStartup:
     """The app as uvicorn serves it: a :class:`SettingsError` its lifespan's startup raises (a VOXE_WORK_DIR that is
-    a file), or a database it cannot reach (``outage_line``), is said in one line (:func:`refuse_settings`) before uvicorn's "Application startup failed. Exiting."
-    (its exit status 3), not in the traceback of some thirty lines uvicorn had printed, the variable on its last.
+    a file), or a database it cannot reach (``outage_line``), is said in one line (:func:`refuse_settings`) before
+    uvicorn's "Application startup failed. Exiting." (its exit status 3), not in the traceback of some thirty lines
+    uvicorn had printed, the variable on its last.
     Starlette sends that traceback as the startup failure's message, then raises: the message is held until then."""
 
     def __init__(self, app: FastAPI):
