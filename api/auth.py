@@ -349,16 +349,19 @@ def upload_refused_unread(key_id: str, headers: Headers) -> QuotaExceeded | None
     a record (a retry: the route replays what its first request created, whatever the quota)."""
     keys = headers.getlist(IDEMPOTENCY_HEADER)
     with get_sessionmaker()() as session:
-        key = session.get(ApiKey, key_id)
-        if key is None or (keys and session.scalar(select(IdempotencyRecord.id).where(
-                IdempotencyRecord.owner_key_id == key_id, IdempotencyRecord.endpoint == "scenes",
-                IdempotencyRecord.idempotency_key.in_([as_sent(k) for k in keys]))) is not None):
+        if (key := session.get(ApiKey, key_id)) is None:
             return None
         try:
             check_upload_bytes(session, key, get_settings(), 0)
+            return None
         except QuotaExceeded as exc:
-            return exc
-    return None
+            refused = exc
+        # (its records read only for a key with no room: an upload that fits asks the quota alone)
+        if keys and session.scalar(select(IdempotencyRecord.id).where(
+                IdempotencyRecord.owner_key_id == key_id, IdempotencyRecord.endpoint == "scenes",
+                IdempotencyRecord.idempotency_key.in_([as_sent(k) for k in keys]))) is not None:
+            return None
+    return refused
 
 
 # ------------------------------------------------------------------ Idempotency-Key
